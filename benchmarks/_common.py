@@ -1,0 +1,99 @@
+"""Shared helpers for the benchmark scripts: timing with compile time apart, and result files.
+
+Every ``benchmarks/bench_NAME.py`` exposes ``main(argv=None)`` (so ``gmjax bench NAME`` can run it),
+accepts ``--quick`` for a small smoke configuration, and writes ``benchmarks/results/NAME.json`` and a
+readable ``NAME.md`` table through :func:`write_results`.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def block(x: Any) -> Any:
+    """``block_until_ready`` on every leaf of a pytree."""
+    return jax.tree_util.tree_map(
+        lambda a: a.block_until_ready() if hasattr(a, "block_until_ready") else a, x
+    )
+
+
+def time_jax(fn: Callable, *args: Any, repeats: int = 5) -> dict[str, float]:
+    """Time a jitted function: first call (compile + run) apart from ``repeats`` steady calls.
+
+    Returns ``{"compile_s", "run_min_s", "run_median_s"}`` where ``compile_s`` is the first call's
+    time minus the median steady run time.
+    """
+    t0 = time.perf_counter()
+    block(fn(*args))
+    first = time.perf_counter() - t0
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        block(fn(*args))
+        runs.append(time.perf_counter() - t0)
+    med = statistics.median(runs)
+    return {"compile_s": max(first - med, 0.0), "run_min_s": min(runs), "run_median_s": med}
+
+
+def time_python(fn: Callable, *args: Any, repeats: int = 3) -> dict[str, float]:
+    """Time a plain Python/NumPy function over ``repeats`` calls."""
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn(*args)
+        runs.append(time.perf_counter() - t0)
+    return {"run_min_s": min(runs), "run_median_s": statistics.median(runs)}
+
+
+def machine_info() -> dict[str, Any]:
+    """Where the numbers were measured."""
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "cpu_count": __import__("os").cpu_count(),
+        "x64": bool(jax.config.jax_enable_x64),
+    }
+
+
+def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
+    """A GitHub-flavoured markdown table; floats printed with 4 significant digits."""
+
+    def fmt(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def write_results(name: str, data: dict[str, Any], markdown: str, *, quick: bool = False) -> Path:
+    """Write ``results/NAME.json`` and ``results/NAME.md`` (``NAME_quick.*`` for quick runs)."""
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    stem = f"{name}_quick" if quick else name
+    payload = {"benchmark": name, "quick": quick, "machine": machine_info(), **data}
+    (RESULTS_DIR / f"{stem}.json").write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
+    (RESULTS_DIR / f"{stem}.md").write_text(markdown.rstrip() + "\n")
+    return RESULTS_DIR / f"{stem}.md"
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, (np.ndarray, jax.Array)):
+        return np.asarray(obj).tolist()
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")

@@ -1,0 +1,375 @@
+"""The fixed-capacity padded Gaussian mixture and its operations.
+
+A :class:`GaussianMixture` has capacity ``K`` slots; ``mask`` says which hold a component. Padded
+slots carry weight 0, mean 0 and identity covariance, so Cholesky factors, log-determinants and
+gradients never see NaN. ``K`` never depends on data: a mixture can be a ``lax.scan`` carry, and
+no function here recompiles when the number of live components changes.
+
+Boundary functions (:meth:`GaussianMixture.create`, :func:`check`) validate eagerly and raise
+``ValueError`` naming the bad field and index. Everything else is traceable (jit/vmap/grad).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import logsumexp
+
+from gmjax import gaussian
+from gmjax._types import Array, ArrayLike, Covs, Mask, Means, Matrix, PRNGKey, Vector, Weights
+
+__all__ = [
+    "GaussianMixture",
+    "check",
+    "sanitize",
+    "log_weights",
+    "logpdf",
+    "pdf",
+    "component_logpdfs",
+    "mean",
+    "cov",
+    "moments",
+    "normalize",
+    "total_weight",
+    "n_active",
+    "compact",
+    "pad",
+    "sample",
+    "marginal",
+    "affine",
+    "concat",
+    "top_k",
+    "from_gaussian",
+]
+
+
+class GaussianMixture(NamedTuple):
+    """A Gaussian mixture with fixed capacity ``K`` (a pytree; no batch dims inside).
+
+    Attributes:
+        weights: ``(K,)`` non-negative; exactly 0 where ``mask`` is False.
+        means: ``(K, d)``; 0 where ``mask`` is False.
+        covs: ``(K, d, d)`` symmetric positive definite; identity where ``mask`` is False.
+        mask: ``(K,)`` bool, which slots hold a component.
+    """
+
+    weights: Weights
+    means: Means
+    covs: Covs
+    mask: Mask
+
+    @property
+    def capacity(self) -> int:
+        """``K``, the number of slots (static)."""
+        return self.weights.shape[-1]
+
+    @property
+    def dim(self) -> int:
+        """``d``, the state dimension (static)."""
+        return self.means.shape[-1]
+
+    @property
+    def dtype(self):
+        return self.means.dtype
+
+    @classmethod
+    def create(
+        cls,
+        weights: ArrayLike,
+        means: ArrayLike,
+        covs: ArrayLike,
+        capacity: int | None = None,
+        *,
+        normalize: bool = True,
+        dtype=None,
+    ) -> "GaussianMixture":
+        """Validate concrete arrays and build a padded mixture (the API boundary).
+
+        Args:
+            weights: ``(n,)`` non-negative, not all zero.
+            means: ``(n, d)`` (or ``(n,)`` for ``d = 1``).
+            covs: ``(n, d, d)`` symmetric positive definite; ``(n,)`` variances for ``d = 1``
+                and ``(n, d)`` diagonals are accepted.
+            capacity: number of slots ``K >= n`` (default ``n``).
+            normalize: divide the weights by their sum.
+            dtype: floating dtype (default: the JAX default float).
+
+        Raises:
+            ValueError: naming the field and offending index on NaN/inf, negative or all-zero
+                weights, non-symmetric or non-PD covariances, mismatched shapes, or
+                ``capacity < n``.
+        """
+        w = np.asarray(weights, dtype=np.float64)
+        m = np.asarray(means, dtype=np.float64)
+        P = np.asarray(covs, dtype=np.float64)
+        if w.ndim != 1:
+            raise ValueError(f"weights: expected shape (n,), got {w.shape}")
+        n = w.shape[0]
+        if n == 0:
+            raise ValueError("weights: a mixture needs at least one component")
+        if m.ndim == 1 and m.shape[0] == n:
+            m = m[:, None]
+        if m.ndim != 2 or m.shape[0] != n:
+            raise ValueError(f"means: expected shape ({n}, d) to match weights ({n},), got {m.shape}")
+        d = m.shape[1]
+        if P.ndim == 1 and d == 1 and P.shape[0] == n:
+            P = P[:, None, None]
+        elif P.ndim == 2 and P.shape == (n, d):
+            P = np.einsum("ki,ij->kij", P, np.eye(d))
+        if P.shape != (n, d, d):
+            raise ValueError(f"covs: expected shape ({n}, {d}, {d}), got {P.shape}")
+        K = n if capacity is None else int(capacity)
+        if K < n:
+            raise ValueError(f"capacity: {K} is smaller than the number of components {n}")
+        _validate_components(w, m, P, np.ones(n, bool))
+        if normalize:
+            w = w / w.sum()
+        dtype = jnp.zeros(()).dtype if dtype is None else dtype
+        mask = np.zeros(K, bool)
+        mask[:n] = True
+        W = np.zeros(K)
+        W[:n] = w
+        M = np.zeros((K, d))
+        M[:n] = m
+        C = np.broadcast_to(np.eye(d), (K, d, d)).copy()
+        C[:n] = 0.5 * (P + np.swapaxes(P, -1, -2))
+        return cls(
+            jnp.asarray(W, dtype), jnp.asarray(M, dtype), jnp.asarray(C, dtype), jnp.asarray(mask)
+        )
+
+    @classmethod
+    def from_arrays(
+        cls,
+        weights: ArrayLike,
+        means: ArrayLike,
+        covs: ArrayLike,
+        mask: ArrayLike | None = None,
+    ) -> "GaussianMixture":
+        """Build a mixture inside traced code (no validation); padded slots are sanitised."""
+        weights = jnp.asarray(weights)
+        mask = jnp.ones(weights.shape, bool) if mask is None else jnp.asarray(mask, bool)
+        return sanitize(cls(weights, jnp.asarray(means), jnp.asarray(covs), mask))
+
+
+def from_gaussian(mean: ArrayLike, cov: ArrayLike, capacity: int = 1) -> GaussianMixture:
+    """A one-component mixture ``N(mean, cov)`` padded to ``capacity`` slots (traceable)."""
+    mean = jnp.asarray(mean)
+    cov = jnp.asarray(cov)
+    d = mean.shape[-1]
+    mask = jnp.arange(capacity) == 0
+    means = jnp.zeros((capacity, d), mean.dtype).at[0].set(mean)
+    covs = jnp.broadcast_to(jnp.eye(d, dtype=cov.dtype), (capacity, d, d)).at[0].set(cov)
+    weights = mask.astype(mean.dtype)
+    return GaussianMixture(weights, means, covs, mask)
+
+
+def _validate_components(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray) -> None:
+    for name, arr in (("weights", w), ("means", m), ("covs", P)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            idx = int(np.argwhere(bad.reshape(arr.shape[0], -1).any(axis=1))[0, 0])
+            raise ValueError(f"{name}: non-finite value (NaN or inf) in component {idx}")
+    neg = np.flatnonzero(w < 0)
+    if neg.size:
+        raise ValueError(f"weights: negative weight {w[neg[0]]:g} at index {int(neg[0])}")
+    if not mask.any():
+        raise ValueError("mask: no live component (all-False mask)")
+    if not (w[mask] > 0).any():
+        raise ValueError("weights: all live weights are zero")
+    d = m.shape[-1]
+    for k in np.flatnonzero(mask):
+        Pk = P[k]
+        scale = max(np.abs(Pk).max(), 1e-300)
+        if not np.allclose(Pk, Pk.T, rtol=1e-8, atol=1e-10 * scale):
+            raise ValueError(f"covs: component {int(k)} is not symmetric")
+        try:
+            np.linalg.cholesky(Pk)
+        except np.linalg.LinAlgError:
+            raise ValueError(f"covs: component {int(k)} is not positive definite") from None
+        if d and np.linalg.eigvalsh(Pk)[0] <= 0:
+            raise ValueError(f"covs: component {int(k)} is not positive definite")
+
+
+def check(gm: GaussianMixture) -> GaussianMixture:
+    """Validate a concrete mixture eagerly; return it unchanged.
+
+    Raises:
+        ValueError: naming the field and index: shapes that disagree, a non-boolean or all-False
+            mask, NaN/inf, negative or all-zero live weights, non-symmetric or non-PD live
+            covariances, or padded slots that are not (0, 0, I).
+    """
+    if not isinstance(gm, GaussianMixture):
+        raise ValueError(f"gm: expected a GaussianMixture, got {type(gm).__name__}")
+    w, m, P, mask = (np.asarray(a) for a in gm)
+    if w.ndim != 1:
+        raise ValueError(f"weights: expected shape (K,), got {w.shape} (batch with vmap, not inside)")
+    K = w.shape[0]
+    if m.ndim != 2 or m.shape[0] != K:
+        raise ValueError(f"means: expected shape ({K}, d), got {m.shape}")
+    d = m.shape[1]
+    if P.shape != (K, d, d):
+        raise ValueError(f"covs: expected shape ({K}, {d}, {d}), got {P.shape}")
+    if mask.shape != (K,) or mask.dtype != np.bool_:
+        raise ValueError(f"mask: expected a bool array of shape ({K},), got {mask.dtype} {mask.shape}")
+    _validate_components(w, m, P, mask)
+    pad_idx = np.flatnonzero(~mask)
+    for k in pad_idx:
+        if w[k] != 0 or np.any(m[k] != 0) or np.any(P[k] != np.eye(d)):
+            raise ValueError(
+                f"mask: padded slot {int(k)} must hold weight 0, mean 0 and identity covariance"
+            )
+    return gm
+
+
+def sanitize(gm: GaussianMixture) -> GaussianMixture:
+    """Reset padded slots to (0, 0, I) (traceable). Call after any operation that may dirty them."""
+    w, m, P, mask = gm
+    d = m.shape[-1]
+    eye = jnp.eye(d, dtype=P.dtype)
+    return GaussianMixture(
+        jnp.where(mask, w, 0.0),
+        jnp.where(mask[:, None], m, 0.0),
+        jnp.where(mask[:, None, None], P, eye),
+        mask,
+    )
+
+
+def total_weight(gm: GaussianMixture) -> Array:
+    """Sum of the live weights ``()``."""
+    return jnp.sum(jnp.where(gm.mask, gm.weights, 0.0))
+
+
+def log_weights(gm: GaussianMixture) -> Weights:
+    """``log w`` for live slots, ``-inf`` for padded or zero-weight ones (gradient-safe)."""
+    live = gm.mask & (gm.weights > 0)
+    return jnp.where(live, jnp.log(jnp.where(live, gm.weights, 1.0)), -jnp.inf)
+
+
+def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
+    """``log N(x; m_k, P_k)`` for every slot: ``(K,)`` for ``x`` of shape ``(d,)``, ``(n, K)`` for ``(n, d)``."""
+    x = jnp.asarray(x)
+    one = lambda xi: jax.vmap(gaussian.logpdf, (None, 0, 0))(xi, gm.means, gm.covs)  # noqa: E731
+    return one(x) if x.ndim == 1 else jax.vmap(one)(x)
+
+
+def logpdf(gm: GaussianMixture, x: ArrayLike) -> Array:
+    """Mixture log-density (weights used as stored): ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``."""
+    return logsumexp(component_logpdfs(gm, x) + log_weights(gm), axis=-1)
+
+
+def pdf(gm: GaussianMixture, x: ArrayLike) -> Array:
+    """Mixture density: ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``."""
+    return jnp.exp(logpdf(gm, x))
+
+
+def _safe_normalized_weights(gm: GaussianMixture) -> Weights:
+    w = jnp.where(gm.mask, gm.weights, 0.0)
+    total = jnp.sum(w)
+    ok = total > 0
+    return jnp.where(ok, w / jnp.where(ok, total, 1.0), 0.0)
+
+
+def moments(gm: GaussianMixture) -> tuple[Vector, Matrix]:
+    """Mean ``(d,)`` and covariance ``(d, d)`` of the (normalised) mixture."""
+    w = _safe_normalized_weights(gm)
+    mu = w @ gm.means
+    dev = gm.means - mu
+    spread = jnp.einsum("k,ki,kj->ij", w, dev, dev)
+    within = jnp.einsum("k,kij->ij", w, gm.covs)
+    return mu, gaussian.symmetrize(within + spread)
+
+
+def mean(gm: GaussianMixture) -> Vector:
+    """Mixture mean ``sum_k w_k m_k / sum_k w_k`` ``(d,)``."""
+    return moments(gm)[0]
+
+
+def cov(gm: GaussianMixture) -> Matrix:
+    """Mixture covariance ``sum_k w_k (P_k + (m_k - m)(m_k - m)^T)`` (normalised weights) ``(d, d)``."""
+    return moments(gm)[1]
+
+
+def normalize(gm: GaussianMixture) -> GaussianMixture:
+    """Scale the live weights to sum to 1 (a mixture with zero total weight is left at 0)."""
+    return gm._replace(weights=_safe_normalized_weights(gm))
+
+
+def n_active(gm: GaussianMixture) -> Array:
+    """Number of live slots ``()`` int32."""
+    return jnp.sum(gm.mask.astype(jnp.int32))
+
+
+def compact(gm: GaussianMixture) -> GaussianMixture:
+    """Move live slots to the front, keeping their relative order (a stable partition)."""
+    order = jnp.argsort(~gm.mask, stable=True)
+    return jax.tree_util.tree_map(lambda a: a[order], gm)
+
+
+def pad(gm: GaussianMixture, capacity: int) -> GaussianMixture:
+    """Append padded slots up to ``capacity`` (static, ``>= gm.capacity``)."""
+    K = gm.capacity
+    if capacity < K:
+        raise ValueError(f"capacity: {capacity} is smaller than the current capacity {K}; use top_k")
+    extra = capacity - K
+    d = gm.dim
+    return GaussianMixture(
+        jnp.concatenate([gm.weights, jnp.zeros(extra, gm.weights.dtype)]),
+        jnp.concatenate([gm.means, jnp.zeros((extra, d), gm.means.dtype)]),
+        jnp.concatenate([gm.covs, jnp.broadcast_to(jnp.eye(d, dtype=gm.covs.dtype), (extra, d, d))]),
+        jnp.concatenate([gm.mask, jnp.zeros(extra, bool)]),
+    )
+
+
+def sample(gm: GaussianMixture, key: PRNGKey, n: int) -> Array:
+    """Draw ``n`` samples ``(n, d)`` from the (normalised) mixture."""
+    k_comp, k_norm = jax.random.split(key)
+    idx = jax.random.categorical(k_comp, log_weights(gm), shape=(n,))
+    factors = jax.vmap(lambda P: gaussian.safe_cholesky(P).factor)(gm.covs)
+    z = jax.random.normal(k_norm, (n, gm.dim), gm.means.dtype)
+    return gm.means[idx] + jnp.einsum("nij,nj->ni", factors[idx], z)
+
+
+def marginal(gm: GaussianMixture, dims: Sequence[int]) -> GaussianMixture:
+    """Marginal mixture over the state dimensions ``dims`` (static)."""
+    dims = jnp.asarray(dims)
+    return GaussianMixture(gm.weights, gm.means[:, dims], gm.covs[:, dims][:, :, dims], gm.mask)
+
+
+def affine(gm: GaussianMixture, A: ArrayLike, b: ArrayLike | None = None) -> GaussianMixture:
+    """Distribution of ``A x + b`` for ``x ~ gm``: means ``A m_k + b``, covariances ``A P_k A^T``.
+
+    ``A`` is ``(e, d)``; ``A`` must have full row rank for the result to be a proper mixture.
+    """
+    A = jnp.asarray(A)
+    means = gm.means @ A.T
+    if b is not None:
+        means = means + jnp.asarray(b)
+    covs = gaussian.symmetrize(jnp.einsum("ij,kjl,ml->kim", A, gm.covs, A))
+    return sanitize(GaussianMixture(gm.weights, means, covs, gm.mask))
+
+
+def concat(a: GaussianMixture, b: GaussianMixture) -> GaussianMixture:
+    """Slots of ``a`` then slots of ``b`` (capacity ``K_a + K_b``); weights kept as they are."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
+
+
+def top_k(gm: GaussianMixture, k: int, *, renormalize: bool = False) -> GaussianMixture:
+    """The ``k`` heaviest live components in a mixture of capacity ``k`` (static), heaviest first.
+
+    Ties keep the lower slot index first. Slots beyond the number of live components are padded.
+    With ``renormalize`` the kept weights are scaled to sum to 1.
+    """
+    if k < 1:
+        raise ValueError(f"k: must be >= 1, got {k}")
+    key = jnp.where(gm.mask, gm.weights, -jnp.inf)
+    if k <= gm.capacity:
+        _, idx = jax.lax.top_k(key, k)
+        out = jax.tree_util.tree_map(lambda a: a[idx], gm)
+    else:
+        out = top_k(pad(gm, k), k)
+        return normalize(out) if renormalize else out
+    out = sanitize(out)
+    return normalize(out) if renormalize else out
