@@ -21,6 +21,8 @@ from jax.scipy.special import logsumexp
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike, Covs, Mask, Means, Matrix, PRNGKey, Vector, Weights
 
+_LOG_2PI = 1.8378770664093453
+
 __all__ = [
     "GaussianMixture",
     "check",
@@ -251,7 +253,14 @@ def log_weights(gm: GaussianMixture) -> Weights:
 def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
     """``log N(x; m_k, P_k)`` for every slot: ``(K,)`` for ``x`` of shape ``(d,)``, ``(n, K)`` for ``(n, d)``."""
     x = jnp.asarray(x)
-    one = lambda xi: jax.vmap(gaussian.logpdf, (None, 0, 0))(xi, gm.means, gm.covs)  # noqa: E731
+    factors = jax.vmap(lambda P: gaussian.safe_cholesky(P).factor)(gm.covs)  # once per component
+    half_logdet = jnp.sum(jnp.log(jnp.diagonal(factors, axis1=-2, axis2=-1)), axis=-1)
+    d = gm.dim
+
+    def one(xi):
+        r = jax.vmap(gaussian.solve_lower)(factors, xi - gm.means)  # (K, d)
+        return -0.5 * (d * _LOG_2PI + jnp.sum(r * r, axis=-1)) - half_logdet
+
     return one(x) if x.ndim == 1 else jax.vmap(one)(x)
 
 
