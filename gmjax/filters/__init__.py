@@ -1,0 +1,78 @@
+"""Filters: Gaussian local filters (KF, EKF, UKF, CKF, GHKF, sparse-grid, SCKF), particle filters, IMM.
+
+Component level (one Gaussian, noise ``(mean, cov)`` passed per call, for Gaussian sum filters):
+``local_kf``, ``local_ekf``, ``local_ukf``, ``local_ckf``, ``local_ghkf``, ``local_sgkf``,
+``local_sckf``, ``local_sigma`` → :class:`LocalFilter`.
+
+Model level (DESIGN §3): ``build_kf``, ``build_ekf``, ``build_ukf``, ``build_ckf``, ``build_ghkf``,
+``build_sgkf``, ``build_sckf``, ``build_sigma`` → :class:`Filter`; :func:`run` scans a filter over
+measurements. Particle filters live in :mod:`gmjax.filters.pf`, IMM in :mod:`gmjax.filters.imm`.
+"""
+
+from gmjax.filters._core import Filter as Filter
+from gmjax.filters._core import GaussianState as GaussianState
+from gmjax.filters._core import LocalFilter as LocalFilter
+from gmjax.filters._core import SqrtState as SqrtState
+from gmjax.filters._core import UpdateInfo as UpdateInfo
+from gmjax.filters._core import from_local as from_local
+from gmjax.filters._core import run as run
+from gmjax.filters.kalman import build_ekf as build_ekf
+from gmjax.filters.kalman import build_kf as build_kf
+from gmjax.filters.kalman import local_ekf as local_ekf
+from gmjax.filters.kalman import local_kf as local_kf
+from gmjax.filters.sigma import build_ckf as build_ckf
+from gmjax.filters.sigma import build_ghkf as build_ghkf
+from gmjax.filters.sigma import build_sckf as build_sckf
+from gmjax.filters.sigma import build_sgkf as build_sgkf
+from gmjax.filters.sigma import build_sigma as build_sigma
+from gmjax.filters.sigma import build_ukf as build_ukf
+from gmjax.filters.sigma import local_ckf as local_ckf
+from gmjax.filters.sigma import local_ghkf as local_ghkf
+from gmjax.filters.sigma import local_sckf as local_sckf
+from gmjax.filters.sigma import local_sgkf as local_sgkf
+from gmjax.filters.sigma import local_sigma as local_sigma
+from gmjax.filters.sigma import local_ukf as local_ukf
+from gmjax.filters.sigma import tria as tria
+from gmjax.filters import imm as imm  # noqa: E402
+from gmjax.filters import pf as pf  # noqa: E402
+from gmjax.filters.imm import IMMInfo as IMMInfo
+from gmjax.filters.imm import IMMState as IMMState
+from gmjax.filters.imm import build_imm as build_imm
+from gmjax.filters.pf import PFInfo as PFInfo
+from gmjax.filters.pf import PFState as PFState
+from gmjax.filters.pf import build_pf as build_pf
+
+__all__ = [
+    "Filter",
+    "GaussianState",
+    "LocalFilter",
+    "SqrtState",
+    "UpdateInfo",
+    "from_local",
+    "run",
+    "local_kf",
+    "local_ekf",
+    "local_sigma",
+    "local_ukf",
+    "local_ckf",
+    "local_ghkf",
+    "local_sgkf",
+    "local_sckf",
+    "build_kf",
+    "build_ekf",
+    "build_sigma",
+    "build_ukf",
+    "build_ckf",
+    "build_ghkf",
+    "build_sgkf",
+    "build_sckf",
+    "tria",
+    "imm",
+    "pf",
+    "IMMInfo",
+    "IMMState",
+    "build_imm",
+    "PFInfo",
+    "PFState",
+    "build_pf",
+]
