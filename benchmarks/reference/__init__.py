@@ -1,0 +1,1 @@
+"""Plain NumPy per-run reference implementations (the baselines the benchmarks compare against)."""

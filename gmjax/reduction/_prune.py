@@ -1,0 +1,232 @@
+"""Pruning: weight threshold, number-limited (top-N) and j-th order statistic censored pruning.
+
+Every pruner keeps whole components, scales the survivors' weights so that the total weight is
+unchanged (for a normalised input: eq 41 of seed 000), and reports the removed weight in
+``ReductionInfo.pruned_mass``. Survivors are stored heaviest first.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from gmjax._pytree import pytree_dataclass, static_field
+from gmjax.mixture import GaussianMixture, sanitize
+from gmjax.reduction import _util
+from gmjax.reduction._base import ReductionInfo, make_info
+
+__all__ = [
+    "prune_threshold",
+    "prune_top",
+    "prune_censored",
+    "PruneThreshold",
+    "PruneTop",
+    "PruneCensored",
+]
+
+
+@partial(jax.jit, static_argnames=("capacity",))
+def _keep(gm: GaussianMixture, keep: jax.Array, capacity: int):
+    """Keep the slots in ``keep`` (heaviest first, at most ``capacity``), renormalise, build info.
+
+    If nothing survives, the heaviest live component is kept (a mixture is never emptied).
+    """
+    w = jnp.where(gm.mask, gm.weights, 0.0)
+    total = jnp.sum(w)
+    keep = keep & gm.mask
+    heaviest = jnp.argmax(jnp.where(gm.mask, w, -jnp.inf))
+    keep = jnp.where(jnp.any(keep), keep, jnp.arange(gm.capacity) == heaviest)
+    n_keep = jnp.sum(keep.astype(jnp.int32))
+    K = gm.capacity
+    # order: kept slots by weight descending (ties: lower slot index first), then the rest
+    score = jnp.where(keep, w, -jnp.inf)
+    if capacity <= K:
+        _, idx = jax.lax.top_k(score, capacity)
+        sel_valid = keep[idx]
+    else:
+        _, idx_full = jax.lax.top_k(score, K)
+        idx = jnp.concatenate([idx_full, jnp.zeros(capacity - K, idx_full.dtype)])
+        sel_valid = jnp.concatenate([keep[idx_full], jnp.zeros(capacity - K, bool)])
+    out = jax.tree_util.tree_map(lambda a: a[idx], gm)
+    out = out._replace(mask=sel_valid)
+    kept_mass = jnp.sum(jnp.where(sel_valid, out.weights, 0.0))
+    scale = jnp.where(kept_mass > 0, total / jnp.where(kept_mass > 0, kept_mass, 1.0), 1.0)
+    out = sanitize(out._replace(weights=out.weights * scale))
+    pos = jnp.full(K, -1, jnp.int32).at[idx].max(
+        jnp.where(sel_valid, jnp.arange(capacity, dtype=jnp.int32), -1)
+    )
+    labels = jnp.where(gm.mask, pos, -1)
+    overflow = n_keep > capacity
+    return out, make_info(
+        gm, out, labels, pruned_mass=total - kept_mass, overflow=overflow, aux={"scale": scale}
+    )
+
+
+def prune_threshold(
+    gm: GaussianMixture,
+    threshold: Any,
+    *,
+    capacity: int | None = None,
+    key: jax.Array | None = None,
+) -> tuple[GaussianMixture, ReductionInfo]:
+    """Drop components whose weight is below ``threshold`` and renormalise.
+
+    Weights are compared as stored (``w_k < threshold`` is dropped); the survivors are scaled so the
+    total weight is unchanged. If every component is below the threshold the heaviest is kept.
+
+    Args:
+        gm: input mixture, capacity ``K``.
+        threshold: ``()`` non-negative, may be traced (its gradient is 0 almost everywhere).
+        capacity: static output capacity (default ``K``); on overflow the heaviest are kept.
+        key: unused (Reducer protocol).
+
+    Returns:
+        ``(pruned mixture, info)``; ``info.pruned_mass`` is the removed weight (before renormalising).
+    """
+    del key
+    _util.validate_mixture(gm)
+    _util.validate_nonneg(threshold, "threshold")
+    cap = _util.validate_capacity(capacity, gm)
+    threshold = jnp.asarray(threshold, gm.weights.dtype)
+    return _keep(gm, gm.mask & (gm.weights >= threshold), cap)
+
+
+def prune_top(
+    gm: GaussianMixture,
+    num_out: int,
+    *,
+    capacity: int | None = None,
+    key: jax.Array | None = None,
+) -> tuple[GaussianMixture, ReductionInfo]:
+    """Number-limited pruning: keep the ``num_out`` heaviest components and renormalise (NL-GMR).
+
+    This is the NL-GMR baseline of seed 000 (its ref. [12]). Ties keep the lower slot index.
+
+    Args:
+        gm: input mixture, capacity ``K``.
+        num_out: static, ``1 <= num_out <= K``.
+        capacity: static output capacity, ``>= num_out`` (default ``K``).
+        key: unused.
+    """
+    del key
+    _util.validate_mixture(gm)
+    num_out = _util.validate_count(num_out, "num_out", 1, gm.capacity)
+    cap = _util.validate_capacity(capacity, gm, minimum=num_out)
+    return _prune_top(gm, num_out, cap)
+
+
+@partial(jax.jit, static_argnames=("num_out", "cap"))
+def _prune_top(gm, num_out, cap):
+    w = jnp.where(gm.mask, gm.weights, -jnp.inf)
+    _, idx = jax.lax.top_k(w, num_out)
+    keep = jnp.zeros(gm.capacity, bool).at[idx].set(True) & gm.mask
+    return _keep(gm, keep, cap)
+
+
+def censored_count(gm: GaussianMixture, rho: Any, max_components: int | None = None) -> jax.Array:
+    """Number of survivors ``N`` of the j-th order statistic pruning (seed 000 eqs 19–22).
+
+    With the live weights sorted ascending (eq 19), ``gamma_n`` is the share of the total carried by
+    the ``I - n + 1`` largest (eq 20), ``n_max`` is the largest ``n`` with ``gamma_n >= rho``
+    (eq 21) and ``N = min(I - n_max + 1, N_u)`` (eq 22). Equivalently ``I - n_max + 1`` is the
+    smallest ``m`` whose ``m`` largest weights hold at least ``rho`` of the total (``gamma_1 = 1``
+    so ``N >= 1`` for ``rho <= 1``).
+    """
+    w = jnp.where(gm.mask, gm.weights, 0.0)
+    total = jnp.sum(w)
+    desc = -jnp.sort(-w)  # descending, padded zeros last
+    csum = jnp.cumsum(desc)
+    I = jnp.sum(gm.mask.astype(jnp.int32))
+    live_rank = jnp.arange(gm.capacity) < I
+    m_star = 1 + jnp.sum((live_rank & (csum < rho * total)).astype(jnp.int32))
+    N = jnp.minimum(m_star, I)
+    if max_components is not None:
+        N = jnp.minimum(N, max_components)
+    return N
+
+
+def prune_censored(
+    gm: GaussianMixture,
+    rho: Any = 0.9544,
+    max_components: int | None = None,
+    *,
+    capacity: int | None = None,
+    key: jax.Array | None = None,
+) -> tuple[GaussianMixture, ReductionInfo]:
+    """Adaptive weight-censored pruning by the j-th order statistic (seed 000 eqs 19–22, 41).
+
+    Keeps the ``N`` largest components, ``N = min(I - n_max + 1, N_u)`` (eqs 19–22, see
+    :func:`censored_count`), and resets their weights by eq 41. Eq 41 as printed divides by
+    ``1 - sum_{m=1}^{I-N+1} w^(m)``; keeping the ``N`` largest removes the ``I - N`` smallest, so
+    the upper limit ``I - N + 1`` would also subtract the smallest kept weight and leave weights
+    summing to more than 1. We read it as the removed mass (limit ``I - N``), i.e. the kept weights
+    are scaled to the input's total weight (1 for a normalised input).
+
+    Args:
+        gm: input mixture, capacity ``K``.
+        rho: censoring threshold in ``[0, 1]`` (default 0.9544, the 2-sigma rule); may be traced.
+        max_components: static cap ``N_u`` (default: no cap beyond the output capacity).
+        capacity: static output capacity (default ``K``).
+        key: unused.
+    """
+    del key
+    _util.validate_mixture(gm)
+    _util.validate_range(rho, "rho", 0.0, 1.0)
+    if max_components is not None:
+        max_components = _util.validate_count(max_components, "max_components", 1, 2**31 - 1)
+    cap = _util.validate_capacity(capacity, gm)
+    rho = jnp.asarray(rho, gm.weights.dtype)
+    return _prune_censored(gm, rho, max_components, cap)
+
+
+@partial(jax.jit, static_argnames=("max_components", "cap"))
+def _prune_censored(gm, rho, max_components, cap):
+    N = censored_count(gm, rho, max_components)
+    w = jnp.where(gm.mask, gm.weights, -jnp.inf)
+    # rank of every slot in descending weight order (ties: lower slot index first)
+    order = jnp.argsort(-w, stable=True)
+    rank = jnp.zeros(gm.capacity, jnp.int32).at[order].set(jnp.arange(gm.capacity, dtype=jnp.int32))
+    out, info = _keep(gm, gm.mask & (rank < N), cap)
+    return out, info._replace(aux={**info.aux, "n_keep": N})
+
+
+# ----------------------------------------------------------------------------- Reducer configs
+
+
+@pytree_dataclass
+class PruneThreshold:
+    """Reducer config for :func:`prune_threshold` (``threshold`` is dynamic)."""
+
+    threshold: Any = 1e-5
+    capacity: int | None = static_field(None)
+
+    def __call__(self, gm, *, key=None):
+        return prune_threshold(gm, self.threshold, capacity=self.capacity, key=key)
+
+
+@pytree_dataclass
+class PruneTop:
+    """Reducer config for :func:`prune_top`."""
+
+    num_out: int = static_field(10)
+    capacity: int | None = static_field(None)
+
+    def __call__(self, gm, *, key=None):
+        return prune_top(gm, self.num_out, capacity=self.capacity, key=key)
+
+
+@pytree_dataclass
+class PruneCensored:
+    """Reducer config for :func:`prune_censored` (``rho`` is dynamic)."""
+
+    rho: Any = 0.9544
+    max_components: int | None = static_field(None)
+    capacity: int | None = static_field(None)
+
+    def __call__(self, gm, *, key=None):
+        return prune_censored(
+            gm, self.rho, self.max_components, capacity=self.capacity, key=key
+        )

@@ -1,0 +1,78 @@
+"""Shared random-mixture helpers for the reduction tests (no tests here; seed 000 ranges)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gmjax.mixture import GaussianMixture
+
+
+def random_components(rng, n, d, *, wr=(1e-2, 0.2), xr=(-2.0, 4.0), sr=(0.4, 1.0)):
+    """``n`` live components: weights in ``wr`` (normalised), means uniform in ``xr``, and
+    covariances ``R diag(s^2) R^T`` with standard deviations uniform in ``sr``."""
+    w = rng.uniform(*wr, n)
+    w = w / w.sum()
+    m = rng.uniform(*xr, (n, d))
+    if d == 1:
+        P = rng.uniform(*sr, (n, 1, 1)) ** 2
+    else:
+        P = np.empty((n, d, d))
+        for k in range(n):
+            q, _ = np.linalg.qr(rng.normal(size=(d, d)))
+            P[k] = q @ np.diag(rng.uniform(*sr, d) ** 2) @ q.T
+            P[k] = 0.5 * (P[k] + P[k].T)
+    return w, m, P
+
+
+def batch(comps, capacity, dtype=jnp.float64):
+    """Stack ``[(w, m, P), ...]`` of varying sizes into one padded batched mixture (no
+    normalisation; padded slots are (0, 0, I))."""
+    B = len(comps)
+    d = np.asarray(comps[0][1]).shape[1]
+    W = np.zeros((B, capacity))
+    M = np.zeros((B, capacity, d))
+    C = np.broadcast_to(np.eye(d), (B, capacity, d, d)).copy()
+    mask = np.zeros((B, capacity), bool)
+    for b, (w, m, P) in enumerate(comps):
+        n = len(w)
+        W[b, :n], M[b, :n], C[b, :n], mask[b, :n] = w, m, P, True
+    return GaussianMixture(jnp.asarray(W, dtype), jnp.asarray(M, dtype), jnp.asarray(C, dtype),
+                           jnp.asarray(mask))
+
+
+def index(gm, b):
+    return jax.tree_util.tree_map(lambda a: a[b], gm)
+
+
+def scatter_padding(gm: GaussianMixture, capacity: int, seed: int) -> GaussianMixture:
+    """The same live components, in the same relative order, spread over a larger capacity with
+    padded slots interleaved at random positions."""
+    rng = np.random.default_rng(seed)
+    n = int(np.sum(np.asarray(gm.mask)))
+    pos = np.sort(rng.choice(capacity, n, replace=False))
+    d = gm.dim
+    W = np.zeros(capacity)
+    M = np.zeros((capacity, d))
+    C = np.broadcast_to(np.eye(d), (capacity, d, d)).copy()
+    mask = np.zeros(capacity, bool)
+    live = np.flatnonzero(np.asarray(gm.mask))
+    W[pos] = np.asarray(gm.weights)[live]
+    M[pos] = np.asarray(gm.means)[live]
+    C[pos] = np.asarray(gm.covs)[live]
+    mask[pos] = True
+    dt = gm.weights.dtype
+    return GaussianMixture(jnp.asarray(W, dt), jnp.asarray(M, dt), jnp.asarray(C, dt),
+                           jnp.asarray(mask))
+
+
+def live_sorted(gm: GaussianMixture):
+    """Live components as NumPy arrays sorted by (weight, first mean coordinate) for
+    order-insensitive comparisons."""
+    mask = np.asarray(gm.mask)
+    w = np.asarray(gm.weights)[mask]
+    m = np.asarray(gm.means)[mask]
+    P = np.asarray(gm.covs)[mask]
+    order = np.lexsort((m[:, 0], w))
+    return w[order], m[order], P[order]
