@@ -41,6 +41,13 @@ from gmjax.reduction._refine import Refined as Refined
 from gmjax.reduction._refine import ise_refine as ise_refine
 from gmjax.reduction._vo_ma import VoMa as VoMa
 from gmjax.reduction._vo_ma import vo_ma as vo_ma
+from gmjax.reduction._clustering import gauss_cluster as gauss_cluster
+from gmjax.reduction._eise import search_confidence as search_confidence
+from gmjax.reduction._gmrcm import GMRCM as GMRCM
+from gmjax.reduction._gmrcm import GMRCMState as GMRCMState
+from gmjax.reduction._gmrcm import gmrcm as gmrcm
+from gmjax.reduction._pcm import PCM as PCM
+from gmjax.reduction._pcm import pcm as pcm
 
 __all__ = [
     "Reducer",
@@ -65,6 +72,11 @@ __all__ = [
     "vo_ma",
     "brute_force",
     "ise_refine",
+    "pcm",
+    "gmrcm",
+    # clustering and the confidence search of PCM / GMRCM (seeds 000, 003)
+    "gauss_cluster",
+    "search_confidence",
     # costs
     "runnalls_cost",
     "salmond_cost",
@@ -83,4 +95,7 @@ __all__ = [
     "VoMa",
     "BruteForce",
     "Refined",
+    "PCM",
+    "GMRCM",
+    "GMRCMState",
 ]

@@ -1,0 +1,240 @@
+"""Cluster-merge reduction, GMRCM (seed 003, Algorithm 1 steps 4–8).
+
+Per call (one filter step):
+
+* **Step 4(2), low-weight rule** (§2.3: "drop components whose weight was very small for two
+  consecutive steps, threshold 0.01"): a :class:`GMRCMState` carried by the filter holds, for every
+  input slot, the number of consecutive previous steps its lineage had weight below the threshold.
+  A component whose weight is below the threshold now and was below it in the previous
+  ``low_steps - 1`` steps is dropped and the rest are renormalised.
+* **Step 4(1), large-covariance rule**: Algorithm 1 reads "(1) 1.5 times the mean; if larger,
+  return it as an iteration item of the next step", and §2.1 says components with a large variance
+  are kept out of the clustering by a threshold. We read: a component whose covariance trace (on
+  the clustering dimensions) exceeds ``large_factor`` × the mean trace of the live components is
+  passed through unmerged.
+* **Steps 5–7**: the confidence range ``λ`` in ``[0.5, 3]`` (§4.1) minimising the EISE
+  ``Σ_c ∫ (f_c - q_c)² + α lg N'`` (eq 10; grid + Newton on the relaxation,
+  :mod:`gmjax.reduction._eise`), the upper-triangular judgment matrix (eqs 4–6) and the
+  re-assignment of shared components (eqs 7–9; the subset case by seed 003's H2, "absorb").
+* **Step 8**: moment-preserving merge of every cluster (eqs 16–18).
+
+**State contract.** ``new_state.low_count[o]`` is the consecutive-low count of output slot ``o``:
+for a merged cluster, the smallest count among its members (a cluster is "low for two steps" only
+if all its members were). The filter expands each output component into its children (prediction
+with ``L`` process-noise terms, update with ``J`` measurement-noise terms) and must give each child
+its parent's count, e.g. ``jnp.repeat(state.low_count, L * J)`` in the same slot order as the
+mixture, before the next call. A fresh state (:meth:`GMRCM.init_state`) is all zeros.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+
+from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
+from gmjax.mixture import GaussianMixture, sanitize
+from gmjax.reduction import _util
+from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._clustering import gauss_cluster
+from gmjax.reduction._eise import hard_eise, search_confidence
+from gmjax.reduction._merge import merge_labels
+from gmjax.reduction._pcm import fixed_result, search_aux, validate_search_args
+
+__all__ = ["GMRCMState", "gmrcm", "GMRCM", "init_state"]
+
+
+class GMRCMState(NamedTuple):
+    """What the filter carries between calls of :func:`gmrcm`.
+
+    Attributes:
+        low_count: ``(K,)`` int32, consecutive previous steps each slot's lineage had a weight below
+            the threshold (aligned with the mixture's slots).
+    """
+
+    low_count: Array
+
+
+def init_state(capacity: int) -> GMRCMState:
+    """A fresh state (no history) for mixtures of ``capacity`` slots."""
+    return GMRCMState(jnp.zeros((capacity,), jnp.int32))
+
+
+def gmrcm(
+    gm: GaussianMixture,
+    state: GMRCMState | None = None,
+    *,
+    alpha: Any = 0.3,
+    lam: Any = None,
+    lambda_range: Sequence[Any] = (0.5, 3.0),
+    grid_size: int = 11,
+    newton_steps: int = 8,
+    temperature: Any = 0.25,
+    tol: Any = 1e-6,
+    range_scale: Any = 0.5,
+    weight_threshold: Any = 0.01,
+    low_steps: int = 2,
+    large_factor: Any = 1.5,
+    dims: Sequence[int] | None = None,
+    capacity: int | None = None,
+    key: jax.Array | None = None,
+) -> tuple[GaussianMixture, GMRCMState, ReductionInfo]:
+    """Cluster-merge reduction of seed 003 (Algorithm 1 steps 4–8).
+
+    Args:
+        gm: input mixture, capacity ``K``.
+        state: the :class:`GMRCMState` carried by the filter (``None``: a fresh one).
+        alpha: regularisation constant of eq 10 (§4.2: 0.3).
+        lam: a fixed ``λ``; ``None`` searches it over ``lambda_range`` (§4.1: ``[0.5, 3]``).
+        grid_size, newton_steps, temperature, tol: the search (see
+            :func:`gmjax.reduction._eise.search_confidence`).
+        range_scale: the confidence scope is ``range_scale · λσ`` (see
+            :mod:`gmjax.reduction._clustering`).
+        weight_threshold: the low-weight threshold (§2.3: 0.01), compared with the weights as given.
+        low_steps: static number of consecutive low steps that drops a component (2).
+        large_factor: covariance-trace factor of step 4(1) (1.5); ``inf`` disables the rule.
+        dims: static clustering dimensions (default all).
+        capacity: static output capacity (default ``K``).
+        key: unused.
+
+    Returns:
+        ``(reduced, new_state, info)``; ``new_state`` is aligned with the output slots (see the
+        module docstring), ``info.cost`` is the EISE, ``info.aux`` holds the search entries of
+        :func:`gmjax.reduction._pcm.pcm` plus ``n_dropped`` (low-weight rule) and ``n_passed``
+        (large-covariance rule).
+
+    Raises:
+        ValueError: for a bad concrete mixture, state or option, naming the argument.
+    """
+    del key
+    _util.validate_mixture(gm)
+    validate_search_args(lam=lam, lambda_range=lambda_range, alpha=alpha, temperature=temperature,
+                         tol=tol, range_scale=range_scale, grid_size=grid_size,
+                         newton_steps=newton_steps, dims=dims, dim=gm.dim)
+    _util.validate_nonneg(weight_threshold, "weight_threshold")
+    _util.validate_nonneg(large_factor, "large_factor")
+    low_steps = _util.validate_count(low_steps, "low_steps", 1, 2**31 - 1)
+    cap = _util.validate_capacity(capacity, gm)
+    K = gm.capacity
+    if state is None:
+        state = init_state(K)
+    if not isinstance(state, GMRCMState) or jnp.shape(state.low_count) != (K,):
+        raise ValueError(f"state: expected a GMRCMState with low_count of shape ({K},)")
+    dims = None if dims is None else tuple(int(i) for i in dims)
+    return _gmrcm_core(gm, state, alpha, lam, tuple(lambda_range), temperature, tol, range_scale,
+                       weight_threshold, large_factor, low_steps=low_steps, grid_size=grid_size,
+                       newton_steps=newton_steps, dims=dims, capacity=cap)
+
+
+@partial(jax.jit, static_argnames=("low_steps", "grid_size", "newton_steps", "dims", "capacity"))
+def _gmrcm_core(gm, state, alpha, lam, lambda_range, temperature, tol, range_scale,
+                weight_threshold, large_factor, *, low_steps, grid_size, newton_steps, dims,
+                capacity):
+    K = gm.capacity
+    cap = capacity
+    dtype = gm.means.dtype
+
+    # Step 4(2): consecutive low-weight rule, then renormalise the rest.
+    w = jnp.where(gm.mask, gm.weights, 0.0)
+    low = gm.mask & (w < weight_threshold)
+    count = jnp.where(low, state.low_count.astype(jnp.int32) + 1, 0)
+    drop = gm.mask & (count >= low_steps)
+    heaviest = jnp.arange(K) == jnp.argmax(jnp.where(gm.mask, w, -jnp.inf))
+    drop = jnp.where(jnp.all(drop | ~gm.mask), drop & ~heaviest, drop)  # never empty the mixture
+    keep = gm.mask & ~drop
+    total = jnp.sum(w)
+    kept_mass = jnp.sum(jnp.where(keep, w, 0.0))
+    scale = jnp.where(kept_mass > 0, total / jnp.where(kept_mass > 0, kept_mass, 1.0), 1.0)
+    work = sanitize(GaussianMixture(w * scale, gm.means, gm.covs, keep))
+
+    # Step 4(1): large covariances pass through unclustered.
+    covs_c = work.covs if dims is None else work.covs[:, jnp.asarray(dims)][:, :, jnp.asarray(dims)]
+    tr = jnp.trace(covs_c, axis1=-2, axis2=-1)
+    n_keep = jnp.sum(keep.astype(dtype))
+    mean_tr = jnp.sum(jnp.where(keep, tr, 0.0)) / jnp.maximum(n_keep, 1.0)
+    big = keep & (tr > large_factor * mean_tr)
+    cl_mask = keep & ~big
+    cl_mask = jnp.where(jnp.any(cl_mask), cl_mask, keep)  # everything large: cluster all
+    big = keep & ~cl_mask
+    to_cluster = sanitize(work._replace(mask=cl_mask))
+    n_ref = jnp.sum(cl_mask.astype(jnp.int32))
+
+    # Steps 5–7: search λ, judgment matrix, clusters, re-assignment; EISE of eq 10.
+    if lam is None:
+        res = search_confidence(
+            to_cluster, lam_lo=lambda_range[0], lam_hi=lambda_range[1], grid_size=grid_size,
+            newton_steps=newton_steps, temperature=temperature, tol=tol, alpha=alpha,
+            method="moment", regularizer="log10", ise_scale=1.0, dims=dims, triangular=True,
+            subset_rule="absorb", range_scale=range_scale,
+        )
+    else:
+        cl = gauss_cluster(to_cluster, lam, dims=dims, triangular=True, subset_rule="absorb",
+                           range_scale=range_scale)
+        value, merged, n = hard_eise(to_cluster, cl.labels, alpha=alpha, method="moment",
+                                     regularizer="log10", ise_scale=1.0)
+        res = fixed_result(to_cluster, lam, cl.labels, value, merged, n)
+
+    # Step 8: moment-preserving merge (eqs 16–18); passed-through slots are their own cluster.
+    slots = jnp.arange(K, dtype=jnp.int32)
+    labels = jnp.where(big, slots, res.labels)
+    labels = jnp.where(keep, labels, -1)
+    merged = merge_labels(work, labels, K, "moment")
+    out, labels_out, overflow, _ = _util.finalize(gm, merged, labels, cap)
+
+    # New state: a cluster's count is the smallest of its members' counts.
+    big_int = jnp.iinfo(jnp.int32).max
+    seg = jnp.where(labels_out >= 0, labels_out, cap)
+    out_count = jax.ops.segment_min(jnp.where(keep, count, big_int), seg, num_segments=cap + 1)[:cap]
+    out_count = jnp.where(out.mask, out_count, 0).astype(jnp.int32)
+
+    aux = search_aux(res, n_ref)
+    aux["n_dropped"] = jnp.sum(drop.astype(jnp.int32))
+    aux["n_passed"] = jnp.sum(big.astype(jnp.int32))
+    info = make_info(gm, out, labels_out, pruned_mass=total - kept_mass, overflow=overflow,
+                     cost=res.eise, aux=aux)
+    return out, GMRCMState(out_count), info
+
+
+@pytree_dataclass
+class GMRCM:
+    """Config for :func:`gmrcm` (static: sizes and step counts; the rest are traced).
+
+    ``GMRCM()(gm)`` follows the Reducer protocol with a fresh state (no low-weight history);
+    a filter calls :meth:`step` with the state it carries.
+    """
+
+    alpha: Any = 0.3
+    lam: Any = None
+    lambda_range: Any = (0.5, 3.0)
+    temperature: Any = 0.25
+    tol: Any = 1e-6
+    range_scale: Any = 0.5
+    weight_threshold: Any = 0.01
+    large_factor: Any = 1.5
+    low_steps: int = static_field(2)
+    grid_size: int = static_field(11)
+    newton_steps: int = static_field(8)
+    dims: tuple[int, ...] | None = static_field(None)
+    capacity: int | None = static_field(None)
+
+    def init_state(self, capacity: int) -> GMRCMState:
+        """A fresh state for input mixtures of ``capacity`` slots."""
+        return init_state(capacity)
+
+    def step(self, gm: GaussianMixture, state: GMRCMState | None, *,
+             key: jax.Array | None = None) -> tuple[GaussianMixture, GMRCMState, ReductionInfo]:
+        """One reduction with the carried state: ``(reduced, new_state, info)``."""
+        return gmrcm(
+            gm, state, alpha=self.alpha, lam=self.lam, lambda_range=self.lambda_range,
+            grid_size=self.grid_size, newton_steps=self.newton_steps,
+            temperature=self.temperature, tol=self.tol, range_scale=self.range_scale,
+            weight_threshold=self.weight_threshold, low_steps=self.low_steps,
+            large_factor=self.large_factor, dims=self.dims, capacity=self.capacity, key=key,
+        )
+
+    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
+        out, _, info = self.step(gm, None, key=key)
+        return out, info

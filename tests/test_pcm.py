@@ -1,0 +1,399 @@
+"""EISE, confidence search, PCM (seed 000) and GMRCM (seed 003) reducers."""
+
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal, norm
+
+from gmjax.mixture import GaussianMixture, moments, pad
+from gmjax.reduction._clustering import gauss_cluster
+from gmjax.reduction._eise import (
+    cluster_ise,
+    hard_eise,
+    merge_membership,
+    onehot_membership,
+    relaxed_eise,
+    search_confidence,
+)
+from gmjax.reduction._gmrcm import GMRCM, GMRCMState, gmrcm, init_state
+from gmjax.reduction._merge import merge_labels
+from gmjax.reduction._pcm import PCM, pcm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from reference import pcm_numpy as ref  # noqa: E402
+
+K = 12  # one capacity throughout so compiled kernels are shared
+
+# seed 000 §IV-A / seed 003 §4.1 static cases
+CASES = {
+    "unimodal": ([0.3, 0.1, 0.4, 0.2], [1, 1.5, 2, 3], [1, 1.2, 0.5, 0.8]),
+    "bimodal": ([0.3, 0.1, 0.4, 0.2], [0.5, 2, 3.5, 4], [1, 1.2, 0.5, 0.8]),
+    "multimodal": ([0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06], [0.5, 2, 3.5, 4, 5, -1, 0, 1],
+                   [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3]),
+}
+
+
+def case(name, dtype=jnp.float64, capacity=K):
+    w, m, s = CASES[name]
+    return GaussianMixture.create(w, m, np.asarray(s, float) ** 2, capacity=capacity, dtype=dtype)
+
+
+def case_np(name):
+    w, m, s = CASES[name]
+    return np.asarray(w, float), np.asarray(m, float)[:, None], (np.asarray(s, float) ** 2)[:, None, None]
+
+
+def random_gm(seed, n=10, d=1, capacity=K, dtype=jnp.float64):
+    rng = np.random.default_rng(seed)
+    w = rng.uniform(0.02, 0.2, n)
+    m = rng.uniform(-2, 4, (n, d))
+    A = rng.normal(size=(n, d, d)) * 0.3
+    P = A @ np.swapaxes(A, 1, 2) + np.eye(d) * rng.uniform(0.16, 1.0, (n, 1, 1))
+    gm = GaussianMixture.create(w, m, P, capacity=capacity, dtype=dtype)
+    return gm, w / w.sum(), m, P
+
+
+# --------------------------------------------------------------------------- merging
+
+
+@pytest.mark.parametrize("method", ["ci", "moment"])
+def test_merge_membership_matches_merge_labels_and_reference(method):
+    gm, w, m, P = random_gm(0, d=2)
+    labels = gauss_cluster(gm, 3.0).labels
+    mine = merge_membership(gm, onehot_membership(labels, K, gm.dtype), method)
+    theirs = merge_labels(gm, labels, K, method)
+    for a, b in zip(mine, theirs):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    fn = ref.merge_ci if method == "ci" else ref.merge_moment
+    for c in np.unique(np.asarray(labels)[: len(w)]):
+        idx = np.flatnonzero(np.asarray(labels) == c)
+        W, mb, Pb = fn(w[idx], m[idx], P[idx])
+        np.testing.assert_allclose(mine.weights[c], W, rtol=1e-12)
+        np.testing.assert_allclose(mine.means[c], mb, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(mine.covs[c], Pb, rtol=1e-10, atol=1e-12)
+    assert float(jnp.sum(mine.weights)) == pytest.approx(1.0, rel=1e-14)
+
+
+def test_moment_merge_preserves_mixture_moments_with_soft_memberships():
+    gm, *_ = random_gm(1, d=2)
+    A = jax.nn.softmax(jax.random.normal(jax.random.PRNGKey(0), (K, 4)), axis=1)
+    merged = merge_membership(gm, A, "moment")
+    for a, b in zip(moments(merged), moments(gm)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- closed-form EISE
+
+
+def _weighted_pdfs_1d(gm, x):
+    """``(n, K)`` ``w_k N(x; m_k, P_k)`` by SciPy (0 on padded slots)."""
+    mu = np.asarray(gm.means)[:, 0]
+    sd = np.sqrt(np.asarray(gm.covs)[:, 0, 0])
+    w = np.asarray(gm.weights) * np.asarray(gm.mask)
+    return norm.pdf(x[:, None], mu[None, :], sd[None, :]) * w[None, :]
+
+
+def _grid_ise_1d(gm, A, merged):
+    x = np.linspace(-25, 30, 40001)
+    f = _weighted_pdfs_1d(gm, x) @ np.asarray(A)  # (n, C) cluster sub-mixtures
+    q = _weighted_pdfs_1d(merged, x)  # (n, C) merged components
+    return np.trapezoid((f - q) ** 2, x, axis=0)
+
+
+@pytest.mark.parametrize("method", ["ci", "moment"])
+def test_cluster_ise_equals_numerical_integration_1d(method):
+    gm = case("multimodal")
+    labels = gauss_cluster(gm, 3.0).labels
+    A = onehot_membership(labels, K, gm.dtype)
+    merged = merge_membership(gm, A, method)
+    closed = np.asarray(cluster_ise(gm, A, merged))
+    np.testing.assert_allclose(closed, _grid_ise_1d(gm, A, merged), rtol=1e-7, atol=1e-12)
+    assert np.count_nonzero(closed > 1e-8) >= 1  # some cluster really merged
+    # soft memberships too (the relaxation uses the same formula)
+    A_soft = jax.nn.softmax(jax.random.normal(jax.random.PRNGKey(1), (K, K)), axis=1)
+    merged_s = merge_membership(gm, A_soft, method)
+    np.testing.assert_allclose(cluster_ise(gm, A_soft, merged_s), _grid_ise_1d(gm, A_soft, merged_s),
+                               rtol=1e-7, atol=1e-12)
+
+
+def test_cluster_ise_equals_numerical_integration_2d():
+    gm, *_ = random_gm(2, n=6, d=2)
+    labels = gauss_cluster(gm, 4.0).labels
+    A = onehot_membership(labels, K, gm.dtype)
+    merged = merge_membership(gm, A, "ci")
+    closed = np.asarray(cluster_ise(gm, A, merged))
+    g = np.linspace(-9, 11, 601)
+    X = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    h = (g[1] - g[0]) ** 2
+
+    def wpdfs(g):
+        return np.stack([
+            multivariate_normal(np.asarray(g.means[k]), np.asarray(g.covs[k])).pdf(X)
+            * float(g.weights[k] * g.mask[k]) for k in range(g.capacity)], axis=1)
+
+    comp, qcomp = wpdfs(gm), wpdfs(merged)
+    numeric = ((comp @ np.asarray(A) - qcomp) ** 2).sum(0) * h
+    np.testing.assert_allclose(closed, numeric, rtol=1e-6, atol=1e-12)
+    assert closed.max() > 1e-6
+
+
+@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize("seed000", [True, False])
+def test_hard_eise_matches_reference(name, seed000):
+    gm = case(name)
+    w, m, P = case_np(name)
+    opts = (dict(method="ci", regularizer="exp", ise_scale=0.5, triangular=False, rule="split")
+            if seed000 else
+            dict(method="moment", regularizer="log10", ise_scale=1.0, triangular=True, rule="absorb"))
+    for lam in (1.0, 2.0, 3.0, 4.0):
+        labels = gauss_cluster(gm, lam, triangular=opts["triangular"], subset_rule=opts["rule"]).labels
+        e, merged, n = hard_eise(gm, labels, alpha=0.01, method=opts["method"],
+                                 regularizer=opts["regularizer"], ise_scale=opts["ise_scale"])
+        *_, clusters, e_ref = ref.reduce_fixed(
+            w, m, P, lam, merge=opts["method"], triangular=opts["triangular"],
+            subset_rule=opts["rule"], alpha=0.01, reg=opts["regularizer"], ise_scale=opts["ise_scale"])
+        assert float(e) == pytest.approx(e_ref, rel=1e-10, abs=1e-15)
+        assert int(n) == len(clusters)
+
+
+# --------------------------------------------------------------------------- relaxation and Newton
+
+
+def _grid_for(gm, G=11, lo=1.0, hi=3.0):
+    grid = jnp.linspace(lo, hi, G)
+    labels = jax.vmap(lambda lam: gauss_cluster(gm, lam).labels)(grid)
+    counts = jax.vmap(lambda lab: jnp.unique(lab, size=K, fill_value=-1))(labels)
+    counts = jnp.sum(counts >= 0, axis=1)
+    return grid, labels, counts
+
+
+def test_relaxed_eise_gradient_matches_finite_differences():
+    gm = case("multimodal")
+    grid, labels, counts = _grid_for(gm)
+
+    @jax.jit
+    def f(lam):
+        return relaxed_eise(lam, gm, grid, labels, counts, temperature=0.2, alpha=0.01)
+
+    g = jax.jit(jax.grad(f))
+    h = jax.jit(jax.grad(jax.grad(f)))
+    hess = jax.jit(jax.hessian(f))
+    for lam in (1.15, 1.5, 2.05, 2.7):
+        eps = 1e-5
+        fd = (f(lam + eps) - f(lam - eps)) / (2 * eps)
+        assert float(g(lam)) == pytest.approx(float(fd), rel=1e-6, abs=1e-10)
+        fd2 = (g(lam + eps) - g(lam - eps)) / (2 * eps)
+        assert float(h(lam)) == pytest.approx(float(fd2), rel=1e-5, abs=1e-8)
+        assert float(h(lam)) == pytest.approx(float(hess(lam)), rel=1e-12)
+    # the relaxation is not flat where the hard EISE is (piecewise constant)
+    assert any(abs(float(g(lam))) > 1e-6 for lam in (1.15, 1.5, 2.05, 2.7))
+
+
+def test_relaxation_tends_to_hard_eise_at_grid_points():
+    gm = case("bimodal")
+    grid, labels, counts = _grid_for(gm)
+    soft_fn = jax.jit(lambda lam: relaxed_eise(lam, gm, grid, labels, counts, temperature=1e-3,
+                                               alpha=0.01))
+    for k in (0, 4, 10):
+        hard, _, _ = hard_eise(gm, labels[k], alpha=0.01)
+        soft = soft_fn(grid[k])
+        assert float(soft) == pytest.approx(float(hard), rel=1e-9)
+
+
+NEWTON_TOL = 1e-9  # relative: Newton's hard EISE may exceed the grid's best only by rounding
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_newton_no_worse_than_grid_on_static_cases(name):
+    gm = case(name)
+    res = search_confidence(gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8,
+                            temperature=0.2, tol=1e-6, alpha=0.01)
+    assert bool(jnp.isfinite(res.lam_newton)) and 1.0 <= float(res.lam_newton) <= 3.0
+    assert int(res.iterations) >= 1
+    assert float(res.eise_newton) <= float(res.eise_grid) * (1 + NEWTON_TOL)
+    assert float(res.eise) <= float(res.eise_grid) * (1 + NEWTON_TOL)
+    assert float(res.eise_grid) == pytest.approx(float(jnp.min(res.grid_eise)))
+    # the chosen result is consistent with a hard clustering at the chosen lambda
+    labels = gauss_cluster(gm, res.lam).labels
+    np.testing.assert_array_equal(labels, res.labels)
+
+
+def test_search_grid_matches_numpy_reference():
+    w, m, P = case_np("multimodal")
+    gm = case("multimodal")
+    res = search_confidence(gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=0,
+                            temperature=0.2, tol=1e-6, alpha=0.001)
+    lam_ref, (_, _, _, _, e_ref) = ref.pcm_grid(w, m, P, prune=False, grid=11)
+    assert float(res.lam) == pytest.approx(lam_ref)
+    assert float(res.eise) == pytest.approx(e_ref, rel=1e-10)
+    assert bool(res.used_fallback)
+
+
+# --------------------------------------------------------------------------- the PCM reducer
+
+
+def test_pcm_matches_reference_pipeline():
+    gm, w, m, P = random_gm(3, n=10)
+    out, info = pcm(gm, newton_steps=0)
+    kept, wk, mk, Pk = ref.prune_censored(w, m, P, 0.9544)
+    lam_ref, (ow, om, oP, clusters, e_ref) = ref.pcm_grid(w, m, P, grid=11)
+    assert float(info.aux["lambda"]) == pytest.approx(lam_ref)
+    assert float(info.cost) == pytest.approx(e_ref, rel=1e-10)
+    assert int(info.n_out) == len(clusters) == int(info.aux["n_clusters"])
+    assert int(info.aux["n_reference"]) == len(kept)
+    got = sorted(zip(np.asarray(out.weights)[: len(ow)], np.asarray(out.means)[: len(ow), 0]))
+    exp = sorted(zip(ow, om[:, 0]))
+    np.testing.assert_allclose(got, exp, rtol=1e-10)
+    assert float(info.pruned_mass) == pytest.approx(1 - w[kept].sum(), abs=1e-12)
+    assert float(jnp.sum(out.weights)) == pytest.approx(1.0, rel=1e-12)
+    # labels: merging the kept input slots by info.labels reproduces the output (eq 41 weights)
+    again = merge_labels(gm, info.labels, K, "ci")
+    again = again._replace(weights=again.weights / jnp.sum(again.weights))
+    for a, b in zip(again, out):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def _check_jit_vmap_padding_dtypes(**kw):
+    gms = [random_gm(s, n=9)[0] for s in range(3)]
+    eager = [pcm(g, **kw) for g in gms]
+    cfg = PCM(**kw)
+    jitted = jax.jit(lambda c, g: c(g))
+    for g, (o, i) in zip(gms, eager):
+        oj, ij = jitted(cfg, g)
+        np.testing.assert_allclose(oj.weights, o.weights, rtol=1e-12)
+        assert float(ij.aux["lambda"]) == pytest.approx(float(i.aux["lambda"]))
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
+    ob, ib = jax.vmap(lambda g: pcm(g, **kw))(stacked)
+    for k, (o, i) in enumerate(eager):
+        np.testing.assert_allclose(ob.means[k], o.means, rtol=1e-12, atol=1e-14)
+        np.testing.assert_array_equal(ib.labels[k], i.labels)
+        assert float(ib.cost[k]) == pytest.approx(float(i.cost), rel=1e-12)
+    # extra padded slots change nothing but the capacity
+    gm, *_ = random_gm(4, n=9, capacity=9)
+    o9, i9 = pcm(gm, capacity=K, **kw)
+    o12, i12 = pcm(pad(gm, K), **kw)
+    np.testing.assert_allclose(o9.weights, o12.weights, rtol=1e-12)
+    np.testing.assert_array_equal(i9.labels, i12.labels[:9])
+    assert float(i9.cost) == pytest.approx(float(i12.cost), rel=1e-12)
+    # float32 agrees with float64 to float32 rounding
+    g32 = random_gm(0, n=9, dtype=jnp.float32)[0]
+    o32, i32 = pcm(g32, **kw)
+    assert o32.means.dtype == jnp.float32 and i32.cost.dtype == jnp.float32
+    assert int(i32.n_out) == int(eager[0][1].n_out)
+    np.testing.assert_allclose(o32.weights, eager[0][0].weights, rtol=1e-4, atol=1e-6)
+    assert float(i32.cost) == pytest.approx(float(eager[0][1].cost), rel=1e-4)
+
+
+def test_pcm_jit_eager_vmap_padding_and_dtypes_grid_search():
+    _check_jit_vmap_padding_dtypes(newton_steps=0)
+
+
+@pytest.mark.slow
+def test_pcm_jit_eager_vmap_padding_and_dtypes_with_newton():
+    _check_jit_vmap_padding_dtypes()
+
+
+def test_pcm_fixed_lambda_and_overflow():
+    gm = case("multimodal")
+    out, info = pcm(gm, lam=1.0, prune=False, alpha=0.01)
+    assert int(info.n_out) == 6 and int(info.aux["iterations"]) == 0
+    out, info = pcm(gm, lam=1.0, prune=False, capacity=4)
+    assert bool(info.overflow) and int(info.n_out) == 4
+
+
+def test_pcm_gradients_finite_with_padding():
+    gm = case("bimodal")
+    grid, labels, counts = _grid_for(gm)
+
+    def f(means, weights):
+        g = gm._replace(means=means, weights=weights)
+        return relaxed_eise(1.7, g, grid, labels, counts, temperature=0.2, alpha=0.01)
+
+    gm_, gw = jax.jit(jax.grad(f, argnums=(0, 1)))(gm.means, gm.weights)
+    assert np.all(np.isfinite(gm_)) and np.all(np.isfinite(gw))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(lambda_range=(3.0, 1.0)), "lambda_range"),
+    (dict(merge="kl"), "merge"),
+    (dict(dims=(3,)), "dims"),
+    (dict(temperature=0.0), "temperature"),
+    (dict(rho=1.5), "rho"),
+    (dict(grid_size=1), "grid_size"),
+])
+def test_pcm_bad_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        pcm(case("unimodal"), **kwargs)
+
+
+# --------------------------------------------------------------------------- the GMRCM reducer
+
+
+def test_gmrcm_fixed_lambda_matches_reference():
+    w, m, P = case_np("multimodal")
+    for lam in (1.0, 2.0, 3.0, 4.0):
+        out, state, info = gmrcm(case("multimodal"), lam=lam, alpha=0.3, large_factor=jnp.inf)
+        ow, om, oP, clusters, e_ref = ref.reduce_fixed(
+            w, m, P, lam, merge="moment", triangular=True, subset_rule="absorb", alpha=0.3,
+            reg="log10", ise_scale=1.0)
+        assert float(info.cost) == pytest.approx(e_ref, rel=1e-10)
+        assert int(info.n_out) == len(clusters)
+        np.testing.assert_array_equal(state.low_count, 0)
+        # moment merging preserves the mixture mean and covariance
+        for a, b in zip(moments(out), moments(case("multimodal"))):
+            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_gmrcm_low_weight_rule_over_two_steps():
+    w = np.array([0.5, 0.3, 0.005, 0.195])
+    gm = GaussianMixture.create(w, [0.0, 10.0, 20.0, 30.0], [1.0] * 4, capacity=K)
+    # step 1: slot 2 is low for the first time -> kept, its count becomes 1
+    out, state, info = gmrcm(gm, lam=1.0)
+    assert int(info.aux["n_dropped"]) == 0 and int(info.n_out) == 4
+    slot2 = int(info.labels[2])
+    assert int(state.low_count[slot2]) == 1 and int(jnp.sum(state.low_count)) == 1
+    # step 2 (the filter hands each child its parent's count): low again -> dropped, renormalised
+    out2, state2, info2 = gmrcm(out, state, lam=1.0)
+    assert int(info2.aux["n_dropped"]) == 1 and int(info2.n_out) == 3
+    assert float(info2.pruned_mass) == pytest.approx(0.005)
+    assert float(jnp.sum(out2.weights)) == pytest.approx(1.0)
+    # a component that recovers resets its count
+    out3, state3, _ = gmrcm(gm._replace(weights=jnp.asarray(np.r_[0.4, 0.3, 0.1, 0.2, np.zeros(K - 4)])),
+                            GMRCMState(jnp.ones(K, jnp.int32)), lam=1.0)
+    np.testing.assert_array_equal(state3.low_count, 0)
+
+
+def test_gmrcm_large_covariance_passes_through_and_state_min_rule():
+    # two close small components and one broad one; the broad one is not clustered (step 4(1))
+    gm = GaussianMixture.create([0.4, 0.4, 0.2], [0.0, 0.1, 0.05], [1.0, 1.0, 9.0], capacity=K)
+    out, state, info = gmrcm(gm, lam=3.0)
+    assert int(info.aux["n_passed"]) == 1 and int(info.n_out) == 2
+    assert int(info.labels[0]) == int(info.labels[1]) != int(info.labels[2])
+    out, state, info = gmrcm(gm, lam=3.0, large_factor=jnp.inf)
+    assert int(info.n_out) == 1
+    # a merged cluster's count is the smallest of its members'
+    gm2 = GaussianMixture.create([0.005, 0.006, 0.989], [0.0, 0.1, 50.0], [1.0, 1.0, 1.0], capacity=K)
+    st = GMRCMState(jnp.zeros(K, jnp.int32).at[0].set(1))  # slot 0 was low before: dropped now
+    out, st2, info = gmrcm(gm2, st, lam=3.0)
+    assert int(info.aux["n_dropped"]) == 1
+    st = GMRCMState(jnp.zeros(K, jnp.int32))
+    out, st2, info = gmrcm(gm2, st, lam=3.0)  # 0 and 1 merge, both low once -> count 1
+    assert int(st2.low_count[int(info.labels[0])]) == 1
+
+
+def test_gmrcm_search_and_config_protocol():
+    gm = case("bimodal")
+    out, state, info = GMRCM(alpha=0.01).step(gm, init_state(K))
+    assert 0.5 <= float(info.aux["lambda"]) <= 3.0
+    assert float(info.cost) <= float(info.aux["eise_grid"]) * (1 + NEWTON_TOL)
+    lam = info.aux["lambda"]
+    out_fixed, _, _ = gmrcm(gm, alpha=0.01, lam=lam)
+    np.testing.assert_allclose(out_fixed.weights, out.weights, rtol=1e-12)
+    out2, info2 = jax.jit(lambda c, g: c(g))(GMRCM(alpha=0.01, lam=lam), gm)
+    np.testing.assert_allclose(out2.weights, out.weights, rtol=1e-12)
+    with pytest.raises(ValueError, match="state"):
+        gmrcm(gm, GMRCMState(jnp.zeros(3, jnp.int32)))
