@@ -3,19 +3,39 @@
 Fixed-capacity padded mixtures with masks, so reduction, Gaussian sum filtering and quadrature run as
 compiled kernels, ``vmap``-ed over Monte Carlo runs and ``lax.scan``-ned over time. Importing gmjax
 never changes ``jax.config``; enable float64 yourself with ``jax.config.update("jax_enable_x64", True)``.
+
+Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`quadrature`,
+:mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`montecarlo`, :mod:`pcrb`,
+:mod:`studies`.
 """
 
 from gmjax import gaussian as gaussian
 from gmjax import metrics as metrics
 from gmjax import mixture as mixture
+from gmjax import quadrature as quadrature
+from gmjax import split as split
+from gmjax import reduction as reduction
+from gmjax import filters as filters
+from gmjax import models as models
+from gmjax import montecarlo as montecarlo
+from gmjax import pcrb as pcrb
 from gmjax.mixture import GaussianMixture as GaussianMixture
+from gmjax.montecarlo import monte_carlo as monte_carlo
 
 __version__ = "0.1.0"
 
 __all__ = [
     "GaussianMixture",
+    "monte_carlo",
     "gaussian",
     "metrics",
     "mixture",
+    "quadrature",
+    "split",
+    "reduction",
+    "filters",
+    "models",
+    "montecarlo",
+    "pcrb",
     "__version__",
 ]

@@ -1,7 +1,8 @@
 """The ``gmjax`` command.
 
-``gmjax`` with no arguments runs the default study; ``gmjax bench NAME`` runs
-``benchmarks/bench_NAME.py`` from a source checkout; ``gmjax --version`` prints the version.
+``gmjax`` with no arguments runs the default study (seed 000 Table 7 over 100 runs);
+``gmjax study NAME``, ``gmjax reproduce [TABLE]``, ``gmjax static`` (seed 000 static reduction cases),
+``gmjax bench NAME`` (``benchmarks/bench_NAME.py`` from a source checkout), ``gmjax --version``.
 """
 
 from __future__ import annotations
@@ -44,13 +45,27 @@ def _run_bench(name: str, rest: Sequence[str]) -> int:
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="gmjax",
-        description="Gaussian-mixture state estimation in JAX. With no command, runs the default study.",
+        description=(
+            "Gaussian-mixture state estimation in JAX. With no command, runs the default study: "
+            "seed 000 Table 7 (NL-GSF, PCM-GSF, R-GSF with EKFs and a 300-particle PF, 100 runs)."
+        ),
     )
     parser.add_argument("--version", action="version", version=f"gmjax {gmjax.__version__}")
     sub = parser.add_subparsers(dest="command")
 
-    default = sub.add_parser("default", help="the default study (also what plain `gmjax` runs)")
-    _add_default_args(default)
+    study = sub.add_parser("study", help="run a Monte Carlo study of a paper scenario")
+    study.add_argument("name", nargs="?", default="jump", help="study name (default: jump); 'list' lists them")
+    _add_study_args(study)
+
+    repro = sub.add_parser("reproduce", help="reproduce a paper table; without TABLE, list them")
+    repro.add_argument("table", nargs="?", help="e.g. seed000-table7")
+    _add_study_args(repro)
+
+    static = sub.add_parser("static", help="seed 000 static random reduction cases (Tables 5-6 style)")
+    static.add_argument("--draws", type=int, default=1000, help="random mixtures per case (default 1000)")
+    static.add_argument("--seed", type=int, default=0)
+    static.add_argument("--out", type=Path, default=Path("gmjax_out"), help="folder for the PNG and JSON")
+    static.add_argument("--no-plot", action="store_true", help="skip the PNG")
 
     bench = sub.add_parser("bench", help="run benchmarks/bench_NAME.py (pass its options after NAME)")
     bench.add_argument("name", nargs="?", help="benchmark name; omit to list them")
@@ -58,27 +73,63 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _add_default_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--draws", type=int, default=1000, help="random mixtures per case (default 1000)")
+def _add_study_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=int, default=100, help="Monte Carlo runs (default 100)")
+    p.add_argument("--filters", nargs="+", default=None, help="subset of the study's filters")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("gmjax_out"), help="folder for the PNG and JSON")
-    p.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    p.add_argument("--chunk-size", type=int, default=None, help="runs per compiled batch (bounds memory)")
+    p.add_argument("--out", type=Path, default=Path("gmjax_out"), help="folder for the JSON and PNG")
+    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
+
+
+def _run_study(name: str, args: argparse.Namespace) -> int:
+    from gmjax import studies
+
+    if args.runs < 1:
+        print("gmjax: --runs must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        return studies.study_main(name, args.runs, seed=args.seed, filters=args.filters, out=args.out,
+                                  as_json=args.json, chunk_size=args.chunk_size)
+    except ValueError as e:
+        print(f"gmjax: {e}", file=sys.stderr)
+        return 2
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _build_parser()
-    if not argv or argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version"):
-        argv = ["default", *argv]
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version")):
+        argv = ["study", "jump", *argv]
     args = parser.parse_args(argv)
     if args.command == "bench":
         if not args.name:
             print("available benchmarks: " + ", ".join(_available_benchmarks()))
             return 0
         return _run_bench(args.name, args.rest)
-    from gmjax import _default_study
+    if args.command == "static":
+        from gmjax import _default_study
 
-    return _default_study.run(draws=args.draws, seed=args.seed, out=args.out, plot=not args.no_plot)
+        return _default_study.run(draws=args.draws, seed=args.seed, out=args.out, plot=not args.no_plot)
+    from gmjax import studies
+
+    if args.command == "reproduce":
+        tables = {studies.STUDIES[n]().table: n for n in studies.STUDIES}
+        if not args.table:
+            print("tables gmjax reproduces (gmjax reproduce TABLE):")
+            for table, n in sorted(tables.items()):
+                print(f"  {table:20s} {studies.STUDIES[n]().title}")
+            print("benchmarks with paper tables (gmjax bench NAME): " + ", ".join(_available_benchmarks()))
+            return 0
+        if args.table not in tables:
+            print(f"gmjax: unknown table {args.table!r}; available: {sorted(tables)}", file=sys.stderr)
+            return 2
+        return _run_study(tables[args.table], args)
+    if args.name == "list":
+        for n in sorted(studies.STUDIES):
+            print(f"{n:12s} {studies.STUDIES[n]().title}")
+        return 0
+    return _run_study(args.name, args)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ Component level (one Gaussian, noise ``(mean, cov)`` passed per call, for Gaussi
 
 Model level (DESIGN §3): ``build_kf``, ``build_ekf``, ``build_ukf``, ``build_ckf``, ``build_ghkf``,
 ``build_sgkf``, ``build_sckf``, ``build_sigma`` → :class:`Filter`; :func:`run` scans a filter over
-measurements. Particle filters live in :mod:`gmjax.filters.pf`, IMM in :mod:`gmjax.filters.imm`.
+measurements. Particle filters live in :mod:`gmjax.filters.pf`, IMM in :mod:`gmjax.filters.imm`,
+the Gaussian sum filter (GM prior and noises, any local filter, any reducer) in :mod:`gmjax.filters.gsf`.
 """
 
 from gmjax.filters._core import Filter as Filter
@@ -41,6 +42,10 @@ from gmjax.filters.imm import build_imm as build_imm
 from gmjax.filters.pf import PFInfo as PFInfo
 from gmjax.filters.pf import PFState as PFState
 from gmjax.filters.pf import build_pf as build_pf
+from gmjax.filters import gsf as gsf  # noqa: E402
+from gmjax.filters.gsf import GSFInfo as GSFInfo
+from gmjax.filters.gsf import GSFState as GSFState
+from gmjax.filters.gsf import build_gsf as build_gsf
 
 __all__ = [
     "Filter",
@@ -75,4 +80,8 @@ __all__ = [
     "PFInfo",
     "PFState",
     "build_pf",
+    "gsf",
+    "GSFInfo",
+    "GSFState",
+    "build_gsf",
 ]
