@@ -68,8 +68,9 @@ class MonteCarloResult(NamedTuple):
             standard error.
         nees: ``(T,)`` average NEES per step; ``anees``: ``()`` over runs and steps.
         cep: ``()`` median position error over all runs and steps (seed 004 eq 24).
-        aeise: ``()`` time/run average of the reducer's cost (AEISE for PCM); ``mean_ise`` of the
-            reduction ISE.
+        mean_cost: ``()`` time/run average of the reducer's own cost (``ReductionInfo.cost``): the
+            AEISE for PCM / GMRCM, a summed KL bound for Runnalls, 0 for pruning; ``mean_ise`` the
+            time/run average of the ISE of each reduction.
         n_components: ``(T,)`` mean live components per step.
         flag_rate: ``()`` fraction of steps with an overflow or a repaired covariance.
         scores: the per-run :class:`RunScores`.
@@ -85,7 +86,7 @@ class MonteCarloResult(NamedTuple):
     nees: np.ndarray
     anees: float
     cep: float
-    aeise: float
+    mean_cost: float
     mean_ise: float
     n_components: np.ndarray
     flag_rate: float
@@ -242,7 +243,7 @@ def summarize(scores: RunScores, *, n_runs: int, compile_s: float = 0.0, run_s: 
         nees=np.asarray(scores.nees).mean(0),
         anees=float(np.mean(scores.nees)),
         cep=float(np.median(np.sqrt(psq))),
-        aeise=float(np.mean(scores.cost)),
+        mean_cost=float(np.mean(scores.cost)),
         mean_ise=float(np.mean(scores.ise)),
         n_components=np.asarray(scores.n_components).mean(0),
         flag_rate=float(np.mean(scores.flags)),
