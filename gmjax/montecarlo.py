@@ -40,7 +40,7 @@ class RunScores(NamedTuple):
         n_components: live mixture components after reduction (1 for single-Gaussian filters).
         ise: ISE of the step's reduction (0 where the filter does not report one).
         cost: the reducer's own cost (e.g. PCM's EISE; 0 where none).
-        flags: any overflow / covariance repair reported by the filter that step.
+        flags: any overflow / covariance repair / degenerate update reported by the filter that step.
         estimates: ``(N, T, d)`` point estimates (kept when ``keep_trajectories``).
         truths: ``(N, T, d)`` true states.
     """
@@ -131,7 +131,7 @@ def score_run(filter: Filter, scenario: Scenario, key: PRNGKey, *, keep_trajecto
     n_comp = getattr(infos, "n_components", None)
     reduction = getattr(infos, "reduction", None)
     flags = jnp.zeros(T, bool)
-    for name in ("overflow", "repaired"):
+    for name in ("overflow", "repaired", "degenerate"):
         if getattr(infos, name, None) is not None:
             flags = flags | jnp.asarray(getattr(infos, name), bool)
     return RunScores(

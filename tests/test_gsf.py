@@ -171,3 +171,17 @@ def test_stateful_reducer_state_is_carried_and_inherited():
     np.testing.assert_array_equal(s0.reducer_state.low_count, 0)
     assert np.asarray(states.reducer_state.low_count).max() >= 1
     assert np.all(np.asarray(infos.n_components) <= K)
+
+
+def test_underflowing_likelihoods_are_flagged_not_nan():
+    # float32: an enormous measurement makes every component's log-likelihood -inf
+    model, _, _ = linear_model(jnp.float32)
+    filt = build_gsf(model, "ekf", PruneTop(num_out=8), capacity=8)
+    state = filt.init()
+    pred = jax.jit(filt.predict)(state, 1)
+    new, info = jax.jit(filt.update)(pred, jnp.array([1e20], jnp.float32), 1)
+    assert bool(info.degenerate)
+    assert np.all(np.isfinite(np.asarray(new.mixture.weights)))
+    np.testing.assert_allclose(float(gmm.total_weight(new.mixture)), 1.0, rtol=1e-5)
+    _, ok = jax.jit(filt.update)(pred, jnp.array([0.3], jnp.float32), 1)
+    assert not bool(ok.degenerate)

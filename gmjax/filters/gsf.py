@@ -72,6 +72,8 @@ class GSFInfo(NamedTuple):
             cost, e.g. PCM's EISE).
         overflow: ``()`` bool, the reducer left more than ``K`` components (heaviest kept).
         repaired: ``()`` bool, a local filter repaired a covariance this step.
+        degenerate: ``()`` bool, every component's likelihood underflowed; the weights were left
+            at their predicted values (``loglik`` is then ``-inf``).
     """
 
     mean: Array
@@ -83,6 +85,7 @@ class GSFInfo(NamedTuple):
     reduction: ReductionInfo
     overflow: Array
     repaired: Array
+    degenerate: Array
 
 
 Reducer = Callable[..., tuple[GaussianMixture, ReductionInfo]]
@@ -235,10 +238,14 @@ def build_gsf(
         j_mask = jnp.where(missing, first_only, r_mask)
         j_logw = jnp.where(missing, 0.0, r_logw)
         mask = gm.mask[:, None] & j_mask[None, :]
-        log_w = gmm.log_weights(gm)[:, None] + j_logw[None, :] + jnp.where(missing, 0.0, loglik)
-        log_w = jnp.where(mask, log_w, -jnp.inf)
+        log_prior = jnp.where(mask, gmm.log_weights(gm)[:, None] + j_logw[None, :], -jnp.inf)
+        log_w = jnp.where(mask, log_prior + jnp.where(missing, 0.0, loglik), -jnp.inf)
         log_norm = logsumexp(log_w)
-        weights = jnp.where(mask, jnp.exp(log_w - log_norm), 0.0)
+        # every likelihood underflowed (an extreme outlier): keep the predicted weights, flag it
+        degenerate = ~jnp.isfinite(log_norm)
+        log_w = jnp.where(degenerate, log_prior, log_w)
+        log_w_norm = jnp.where(degenerate, logsumexp(log_prior), log_norm)
+        weights = jnp.where(mask, jnp.exp(log_w - log_w_norm), 0.0)
         d = gm.dim
         full = gmm.sanitize(
             GaussianMixture(weights.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1))
@@ -258,6 +265,7 @@ def build_gsf(
             reduction=rinfo,
             overflow=overflow | rinfo.overflow,
             repaired=jnp.any(repaired & mask),
+            degenerate=degenerate,
         )
         return GSFState(reduced, key, rstate), info
 
