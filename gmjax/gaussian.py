@@ -124,7 +124,8 @@ def safe_cholesky(cov: ArrayLike) -> CholeskyResult:
     d = sym.shape[-1]
     const = jax.lax.stop_gradient(sym)
     repaired = ~jnp.all(jnp.isfinite(_cholesky(const)))
-    scale = jnp.mean(jnp.abs(jnp.diagonal(const))) + jnp.finfo(sym.dtype).tiny
+    scale = jnp.mean(jnp.abs(jnp.diagonal(const)))
+    scale = jnp.where(scale > 0, scale, 1.0)  # an all-zero covariance has no scale of its own
     shift = 2.0 * _gershgorin_shift(const) + jnp.sqrt(jnp.finfo(sym.dtype).eps) * scale
     jitter = jnp.where(repaired, shift, jnp.zeros((), sym.dtype))
     factor = _cholesky(sym + jitter * jnp.eye(d, dtype=sym.dtype))

@@ -99,3 +99,12 @@ def test_jit_equals_eager_and_vmap_equals_loop():
     batched = jax.jit(jax.vmap(gaussian.logpdf))(xs, ms, Ps)
     looped = [gaussian.logpdf(x, m, P) for x, m, P in zip(xs, ms, Ps)]
     np.testing.assert_allclose(batched, looped, rtol=1e-13)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_safe_cholesky_of_zero_covariance_is_finite_and_flagged(dtype):
+    # e.g. a particle cloud that collapsed to one point
+    res = jax.jit(gaussian.safe_cholesky)(jnp.zeros((2, 2), dtype))
+    assert bool(res.repaired)
+    assert np.all(np.isfinite(res.factor)) and float(res.jitter) > 0
+    assert np.isfinite(float(gaussian.mahalanobis_sq(jnp.ones(2, dtype), jnp.zeros(2, dtype), jnp.zeros((2, 2), dtype))))
