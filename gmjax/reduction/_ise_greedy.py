@@ -45,6 +45,15 @@ class _WState(NamedTuple):
     actions: jax.Array
 
 
+def _initial_state(gm: GaussianMixture, w0: jax.Array, n_steps: int) -> "_WState":
+    """The greedy loop's state before any action (shared by Williams and COWA)."""
+    return _WState(
+        w0, gm.means, gm.covs, gm.mask, _util.identity_labels(gm),
+        jnp.sum(gm.mask.astype(jnp.int32)), jnp.zeros((), w0.dtype),
+        jnp.full((max(n_steps, 1), 2), -2, jnp.int32),
+    )
+
+
 def _terms(s, gm0, w0):
     S = _overlap(s.m[:, None], s.P[:, None], s.m[None], s.P[None])
     live2 = s.mask[:, None] & s.mask[None, :]
@@ -132,11 +141,7 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
         )
 
     n_steps = K - num_out
-    s0 = _WState(
-        w0, gm.means, gm.covs, gm.mask, _util.identity_labels(gm),
-        jnp.sum(gm.mask.astype(jnp.int32)), jnp.zeros((), w0.dtype),
-        jnp.full((max(n_steps, 1), 2), -2, jnp.int32),
-    )
+    s0 = _initial_state(gm, w0, n_steps)
     s = jax.lax.fori_loop(0, n_steps, body, s0)
     work = GaussianMixture(s.w, s.m, s.P, s.mask)
     out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
@@ -263,11 +268,7 @@ def _cowa(gm, num_out, threshold, capacity):
         return jax.tree_util.tree_map(lambda a_, b_: jnp.where(do, a_, b_), new, s)
 
     n_steps = K - num_out
-    s0 = _WState(
-        w0, gm.means, gm.covs, gm.mask, _util.identity_labels(gm),
-        jnp.sum(gm.mask.astype(jnp.int32)), jnp.zeros((), w0.dtype),
-        jnp.full((max(n_steps, 1), 2), -2, jnp.int32),
-    )
+    s0 = _initial_state(gm, w0, n_steps)
     s = jax.lax.fori_loop(0, n_steps, body, s0)
     work = GaussianMixture(s.w, s.m, s.P, s.mask)
     out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
