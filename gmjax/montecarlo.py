@@ -66,7 +66,9 @@ class MonteCarloResult(NamedTuple):
             error (delta method over runs).
         position_armse: ``()`` time average of ``position_rmse``; ``position_armse_stderr`` its
             standard error.
-        nees: ``(T,)`` average NEES per step; ``anees``: ``()`` over runs and steps.
+        nees: ``(T,)`` average NEES per step; ``anees``: ``()`` over runs and steps;
+            ``median_nees``: ``()`` median over runs and steps (robust to the rare step where a
+            particle cloud collapses and one NEES explodes).
         cep: ``()`` median position error over all runs and steps (seed 004 eq 24).
         mean_cost: ``()`` time/run average of the reducer's own cost (``ReductionInfo.cost``): the
             AEISE for PCM / GMRCM, a summed KL bound for Runnalls, 0 for pruning; ``mean_ise`` the
@@ -94,6 +96,7 @@ class MonteCarloResult(NamedTuple):
     n_runs: int
     compile_s: float
     run_s: float
+    median_nees: float = float("nan")
 
 
 def _init_takes_key(filter: Filter) -> bool:
@@ -251,6 +254,7 @@ def summarize(scores: RunScores, *, n_runs: int, compile_s: float = 0.0, run_s: 
         n_runs=n_runs,
         compile_s=compile_s,
         run_s=run_s,
+        median_nees=float(np.median(scores.nees)),
     )
 
 

@@ -190,7 +190,7 @@ def results_json(study: Study, results: dict[str, MonteCarloResult]) -> dict:
         out["filters"][name] = {
             "armse": r.armse, "armse_stderr": r.armse_stderr, "position_armse": r.position_armse,
             "position_armse_stderr": r.position_armse_stderr, "position_rmse": r.position_rmse.tolist(),
-            "anees": r.anees, "cep": r.cep, "mean_reducer_cost": r.mean_cost, "mean_ise": r.mean_ise,
+            "anees": r.anees, "median_nees": r.median_nees, "cep": r.cep, "mean_reducer_cost": r.mean_cost, "mean_ise": r.mean_ise,
             "aeise": r.mean_cost if name in study.eise_filters else None,
             "flag_rate": r.flag_rate, "n_runs": r.n_runs, "compile_s": r.compile_s, "run_s": r.run_s,
             "rmse": r.rmse.tolist(), "nees": r.nees.tolist(), "n_components": r.n_components.tolist(),

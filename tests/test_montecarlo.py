@@ -71,6 +71,7 @@ def test_summary_matches_numpy_aggregation():
     assert r.armse == pytest.approx(rmse_t.mean(), rel=1e-13)
     assert r.cep == pytest.approx(np.median(np.abs(err[..., 0])), rel=1e-13)
     assert r.anees == pytest.approx(r.scores.nees.mean(), rel=1e-13)
+    assert r.median_nees == pytest.approx(np.median(r.scores.nees), rel=1e-13)
     assert r.armse_stderr > 0
     np.testing.assert_array_equal(r.n_components, r.scores.n_components.mean(0))
     assert r.compile_s > 0 and r.run_s > 0
