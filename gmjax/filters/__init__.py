@@ -46,6 +46,23 @@ from gmjax.filters import gsf as gsf  # noqa: E402
 from gmjax.filters.gsf import GSFInfo as GSFInfo
 from gmjax.filters.gsf import GSFState as GSFState
 from gmjax.filters.gsf import build_gsf as build_gsf
+from gmjax.filters.imm import IMMGSFInfo as IMMGSFInfo  # noqa: E402
+from gmjax.filters.imm import IMMGSFState as IMMGSFState
+from gmjax.filters.imm import build_imm_gsf as build_imm_gsf
+from gmjax.filters import bank as bank  # noqa: E402
+from gmjax.filters.bank import BANK_METHODS as BANK_METHODS
+from gmjax.filters.bank import BankInfo as BankInfo
+from gmjax.filters.bank import BankState as BankState
+from gmjax.filters.bank import build_bank as build_bank
+from gmjax.filters.bank import run_bank as run_bank
+from gmjax.filters import agsf as agsf  # noqa: E402
+from gmjax.filters.agsf import AGSFConfig as AGSFConfig
+from gmjax.filters.agsf import AGSFInfo as AGSFInfo
+from gmjax.filters.agsf import AGSFState as AGSFState
+from gmjax.filters.agsf import build_agsf as build_agsf
+from gmjax.filters.agsf import build_gsckf as build_gsckf
+from gmjax.filters.agsf import build_gsukf as build_gsukf
+from gmjax.filters.agsf import degree_of_nonlinearity as degree_of_nonlinearity
 
 __all__ = [
     "Filter",
@@ -84,4 +101,21 @@ __all__ = [
     "GSFInfo",
     "GSFState",
     "build_gsf",
+    "IMMGSFInfo",
+    "IMMGSFState",
+    "build_imm_gsf",
+    "bank",
+    "BANK_METHODS",
+    "BankInfo",
+    "BankState",
+    "build_bank",
+    "run_bank",
+    "agsf",
+    "AGSFConfig",
+    "AGSFInfo",
+    "AGSFState",
+    "build_agsf",
+    "build_gsckf",
+    "build_gsukf",
+    "degree_of_nonlinearity",
 ]
