@@ -6,8 +6,11 @@ Component level (one Gaussian, noise ``(mean, cov)`` passed per call, for Gaussi
 
 Model level (DESIGN §3): ``build_kf``, ``build_ekf``, ``build_ukf``, ``build_ckf``, ``build_ghkf``,
 ``build_sgkf``, ``build_sckf``, ``build_sigma`` → :class:`Filter`; :func:`run` scans a filter over
-measurements. Particle filters live in :mod:`gmjax.filters.pf`, IMM in :mod:`gmjax.filters.imm`,
-the Gaussian sum filter (GM prior and noises, any local filter, any reducer) in :mod:`gmjax.filters.gsf`.
+measurements. Particle filters live in :mod:`gmjax.filters.pf`, IMM (and the IMM of Gaussian sum
+filters, ``build_imm_gsf``) in :mod:`gmjax.filters.imm`, the Gaussian sum filter (GM prior and noises,
+any local filter, any reducer) in :mod:`gmjax.filters.gsf`, seed 001's adaptive split-merge AGSSCKF in
+:mod:`gmjax.filters.agsf`, and seed 004's linear bank with the active-cluster reduction in
+:mod:`gmjax.filters.bank`.
 """
 
 from gmjax.filters._core import Filter as Filter
