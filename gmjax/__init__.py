@@ -6,7 +6,7 @@ never changes ``jax.config``; enable float64 yourself with ``jax.config.update("
 
 Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`quadrature`,
 :mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`montecarlo`, :mod:`pcrb`,
-:mod:`studies`.
+:mod:`tune` (differentiable threshold tuning), :mod:`studies`.
 """
 
 from gmjax import gaussian as gaussian
@@ -19,6 +19,7 @@ from gmjax import filters as filters
 from gmjax import models as models
 from gmjax import montecarlo as montecarlo
 from gmjax import pcrb as pcrb
+from gmjax import tune as tune
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
 
@@ -37,5 +38,6 @@ __all__ = [
     "models",
     "montecarlo",
     "pcrb",
+    "tune",
     "__version__",
 ]
