@@ -28,7 +28,6 @@ import numpy as np  # noqa: E402
 from _common import markdown_table, write_results  # noqa: E402
 from reference import gsf_np, pcm_numpy  # noqa: E402
 
-from gmjax import mixture as gmm  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import seed000, simulate  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
@@ -119,8 +118,8 @@ def main(argv=None):
           + markdown_table(header, rows)
           + "\n\nOne compiled kernel per configuration runs all runs (vmap over runs, lax.scan over time);"
           " compile time is reported apart. The NumPy reference filters one run at a time with the same"
-          " pruning, clustering, CI merging and λ grid, timed in the same process. Timings were taken on a"
-          " shared, loaded 2-core machine (other jobs running), so absolute rates are pessimistic.\n"
+          " pruning, clustering, CI merging and λ grid, timed in the same process. Timings come from the"
+          " project's 2-core CPU machine, which other jobs may share; compare ratios within one run.\n"
           f"\nSame {n_np} simulated runs through both: per-run RMSE NumPy {np.round(np_rmse, 4).tolist()}, "
           f"gmjax (grid) {np.round(gm_rmse, 4).tolist()}.\n")
     path = write_results("montecarlo", data, md, quick=args.quick)

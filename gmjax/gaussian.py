@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve, solve_triangular
 
-from gmjax._types import Array, ArrayLike, Matrix, Scalar, Vector
+from gmjax._types import Array, ArrayLike, Matrix, Scalar
 
 __all__ = [
     "CholeskyResult",

@@ -121,30 +121,50 @@ def _info_field(infos: Any, name: str, T: int, dtype) -> Array:
     return jnp.zeros(T, dtype) if value is None else jnp.asarray(value, dtype)
 
 
-def score_run(filter: Filter, scenario: Scenario, key: PRNGKey, *, keep_trajectories: bool = False) -> RunScores:
-    """Simulate one run of ``scenario``, filter it and score every step (traceable)."""
+class FilteredRun(NamedTuple):
+    """One simulated and filtered run: ``truths``/``estimates`` ``(T, d)``, ``covs`` ``(T, d, d)``,
+    the filter's per-step ``infos``, the position dimensions and the per-step failure ``flags``
+    (overflow, repaired covariance or degenerate update)."""
+
+    truths: Array
+    estimates: Array
+    covs: Array
+    infos: Any
+    position_dims: list[int]
+    flags: Array
+
+
+def filter_run(filter: Filter, scenario: Scenario, key: PRNGKey) -> FilteredRun:
+    """Simulate one run of ``scenario`` and filter it (traceable); shared by the scorers."""
     k_sim, k_filt = jax.random.split(key)
     xs, zs, ts = simulate(scenario, k_sim)
     truths = xs[1:]
     init_state = filter.init(key=k_filt) if _init_takes_key(filter) else filter.init()
     states, infos = run(filter, zs, ts, init_state=init_state)
     est, cov = _estimates(filter, states, infos)
-    T, dtype = truths.shape[0], truths.dtype
     pos = list(scenario.position_dims) if scenario.position_dims else list(range(truths.shape[1]))
-    n_comp = getattr(infos, "n_components", None)
-    reduction = getattr(infos, "reduction", None)
-    flags = jnp.zeros(T, bool)
+    flags = jnp.zeros(truths.shape[0], bool)
     for name in ("overflow", "repaired", "degenerate"):
         if getattr(infos, name, None) is not None:
             flags = flags | jnp.asarray(getattr(infos, name), bool)
+    return FilteredRun(truths, est, cov, infos, pos, flags)
+
+
+def score_run(filter: Filter, scenario: Scenario, key: PRNGKey, *, keep_trajectories: bool = False) -> RunScores:
+    """Simulate one run of ``scenario``, filter it and score every step (traceable)."""
+    r = filter_run(filter, scenario, key)
+    truths, est, pos = r.truths, r.estimates, r.position_dims
+    T, dtype = truths.shape[0], truths.dtype
+    n_comp = getattr(r.infos, "n_components", None)
+    reduction = getattr(r.infos, "reduction", None)
     return RunScores(
         sq_error=metrics.squared_error(est, truths),
         position_sq_error=metrics.squared_error(est[:, pos], truths[:, pos]),
-        nees=metrics.nees(est, cov, truths),
+        nees=metrics.nees(est, r.covs, truths),
         n_components=jnp.ones(T, jnp.int32) if n_comp is None else jnp.asarray(n_comp, jnp.int32),
-        ise=_info_field(infos, "ise", T, dtype),
+        ise=_info_field(r.infos, "ise", T, dtype),
         cost=jnp.zeros(T, dtype) if reduction is None else jnp.asarray(reduction.cost, dtype),
-        flags=flags,
+        flags=r.flags,
         estimates=est if keep_trajectories else None,
         truths=truths if keep_trajectories else None,
     )

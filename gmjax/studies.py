@@ -268,8 +268,8 @@ def format_table(study: Study, results: dict[str, MonteCarloResult]) -> str:
             f"{r.mean_ise:9.2e} {r.n_components.mean():6.1f} {per_run_ms:8.1f} {r.compile_s:9.1f} {paper_cpu:>8s}"
         )
     n = next(iter(results.values())).n_runs
-    lines += ["", f"ARMSE: time-averaged RMSE of the position components (seed 000 eq 44), with its "
-              f"Monte Carlo standard error; ms/run: execution time per run, compilation apart.",
+    lines += ["", "ARMSE: time-averaged RMSE of the position components (seed 000 eq 44), with its "
+              "Monte Carlo standard error; ms/run: execution time per run, compilation apart.",
               f"ours: {n} Monte Carlo runs; paper: {study.paper_runs or 'not stated'} runs.",
               f"Notes: {study.notes}"]
     return "\n".join(lines)

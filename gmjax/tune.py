@@ -41,14 +41,15 @@ import numpy as np
 from gmjax import metrics
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike, PRNGKey
-from gmjax.filters._core import Filter, run
+from gmjax.filters._core import Filter
 from gmjax.mixture import GaussianMixture, sanitize
-from gmjax.models._base import Scenario, simulate
+from gmjax.models._base import Scenario
 from gmjax.reduction import _util
 from gmjax.reduction._base import ReductionInfo, make_info
 from gmjax.reduction._clustering import centre_distances, gauss_cluster, similarity_thresholds
 from gmjax.reduction._eise import eise, hard_eise, merge_membership, onehot_membership, relaxed_membership
 from gmjax.reduction._merge import merge_labels
+from gmjax.reduction._prune import select_kept
 
 __all__ = [
     "MODES",
@@ -208,14 +209,7 @@ def gated_prune(gm: GaussianMixture, gates: Array, capacity: int,
     keep = jnp.where(rescue, jnp.arange(K) == heaviest, keep)
     gates = jnp.where(rescue & (jnp.arange(K) == heaviest), 1.0, gates)
     n_keep = jnp.sum(keep.astype(jnp.int32))
-    score = jnp.where(keep, w, -jnp.inf)
-    if capacity <= K:
-        _, idx = jax.lax.top_k(score, capacity)
-        sel_valid = keep[idx]
-    else:
-        _, idx_full = jax.lax.top_k(score, K)
-        idx = jnp.concatenate([idx_full, jnp.zeros(capacity - K, idx_full.dtype)])
-        sel_valid = jnp.concatenate([keep[idx_full], jnp.zeros(capacity - K, bool)])
+    idx, sel_valid, labels = select_kept(gm, keep, w, capacity)
     out = jax.tree_util.tree_map(lambda a: a[idx], gm)
     g_out = jnp.where(sel_valid, gates[idx], 0.0)
     gw = out.weights * g_out
@@ -223,8 +217,6 @@ def gated_prune(gm: GaussianMixture, gates: Array, capacity: int,
     ok = kept_mass > 0
     scale = jnp.where(ok, total / jnp.where(ok, kept_mass, 1.0), 1.0)
     out = sanitize(out._replace(weights=gw * scale, mask=sel_valid))
-    pos = jnp.full(K, -1, jnp.int32).at[idx].max(jnp.where(sel_valid, jnp.arange(capacity, dtype=jnp.int32), -1))
-    labels = jnp.where(gm.mask, pos, -1)
     info = make_info(gm, out, labels, pruned_mass=total - kept_mass, overflow=n_keep > capacity,
                      aux={"scale": scale, "gates": g_out, "n_expected": jnp.sum(gates)})
     return out, info
@@ -586,32 +578,23 @@ class TuneScores(NamedTuple):
 
 
 def _score(filter: Filter, scenario: Scenario, key: PRNGKey) -> TuneScores:
-    from gmjax.montecarlo import _estimates, _init_takes_key
+    from gmjax.montecarlo import filter_run
 
-    k_sim, k_filt = jax.random.split(key)
-    xs, zs, ts = simulate(scenario, k_sim)
-    truths = xs[1:]
-    init_state = filter.init(key=k_filt) if _init_takes_key(filter) else filter.init()
-    states, infos = run(filter, zs, ts, init_state=init_state)
-    est, cov = _estimates(filter, states, infos)
+    r = filter_run(filter, scenario, key)
+    truths, est, pos, infos = r.truths, r.estimates, r.position_dims, r.infos
     T, dtype = truths.shape[0], truths.dtype
-    pos = list(scenario.position_dims) if scenario.position_dims else list(range(truths.shape[1]))
     reduction = getattr(infos, "reduction", None)
     n_comp = getattr(infos, "n_components", None)
     n_exp = None if reduction is None else reduction.aux.get("n_expected") if isinstance(reduction.aux, dict) else None
     if n_exp is None:
         n_exp = jnp.ones(T, dtype) if n_comp is None else jnp.asarray(n_comp, dtype)
-    flags = jnp.zeros(T, bool)
-    for name in ("overflow", "repaired", "degenerate"):
-        if getattr(infos, name, None) is not None:
-            flags = flags | jnp.asarray(getattr(infos, name), bool)
     return TuneScores(
         sq_error=metrics.squared_error(est, truths),
         position_sq_error=metrics.squared_error(est[:, pos], truths[:, pos]),
-        nees=metrics.nees(est, cov, truths),
+        nees=metrics.nees(est, r.covs, truths),
         cost=jnp.zeros(T, dtype) if reduction is None else jnp.asarray(reduction.cost, dtype),
         n_expected=jnp.asarray(n_exp, dtype),
-        flags=flags,
+        flags=r.flags,
     )
 
 

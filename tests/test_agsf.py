@@ -28,7 +28,7 @@ from gmjax.filters.agsf import (  # noqa: E402
     degree_of_nonlinearity,
 )
 from gmjax.mixture import GaussianMixture  # noqa: E402
-from gmjax.models import StateSpaceModel, simulate  # noqa: E402
+from gmjax.models import simulate  # noqa: E402
 from gmjax.models.seed001 import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
 from gmjax.split import split_count, split_gated, split_principal  # noqa: E402
 

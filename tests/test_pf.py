@@ -69,7 +69,6 @@ def test_resampler_is_unbiased(name):
 
 
 def test_resampler_structure():
-    lw = jnp.log(jnp.asarray(W_TEST))
     n = len(W_TEST)
     keys = jax.random.split(jax.random.key(1), 200)
     nw = n * W_TEST

@@ -28,6 +28,29 @@ __all__ = [
 ]
 
 
+def select_kept(gm: GaussianMixture, keep: jax.Array, w: jax.Array, capacity: int):
+    """Order the kept slots by weight, heaviest first (ties: lower slot index), in ``capacity`` slots.
+
+    Returns:
+        ``idx`` ``(capacity,)`` input slot of each output slot, ``valid`` ``(capacity,)`` whether it
+        holds a kept slot (at most ``capacity`` of them survive), and ``labels`` ``(K,)`` the output
+        slot of every input slot (``-1`` where it was dropped or is padding).
+    """
+    K = gm.capacity
+    score = jnp.where(keep, w, -jnp.inf)
+    if capacity <= K:
+        _, idx = jax.lax.top_k(score, capacity)
+        valid = keep[idx]
+    else:
+        _, idx_full = jax.lax.top_k(score, K)
+        idx = jnp.concatenate([idx_full, jnp.zeros(capacity - K, idx_full.dtype)])
+        valid = jnp.concatenate([keep[idx_full], jnp.zeros(capacity - K, bool)])
+    pos = jnp.full(K, -1, jnp.int32).at[idx].max(
+        jnp.where(valid, jnp.arange(capacity, dtype=jnp.int32), -1)
+    )
+    return idx, valid, jnp.where(gm.mask, pos, -1)
+
+
 @partial(jax.jit, static_argnames=("capacity",))
 def _keep(gm: GaussianMixture, keep: jax.Array, capacity: int):
     """Keep the slots in ``keep`` (heaviest first, at most ``capacity``), renormalise, build info.
@@ -40,25 +63,12 @@ def _keep(gm: GaussianMixture, keep: jax.Array, capacity: int):
     heaviest = jnp.argmax(jnp.where(gm.mask, w, -jnp.inf))
     keep = jnp.where(jnp.any(keep), keep, jnp.arange(gm.capacity) == heaviest)
     n_keep = jnp.sum(keep.astype(jnp.int32))
-    K = gm.capacity
-    # order: kept slots by weight descending (ties: lower slot index first), then the rest
-    score = jnp.where(keep, w, -jnp.inf)
-    if capacity <= K:
-        _, idx = jax.lax.top_k(score, capacity)
-        sel_valid = keep[idx]
-    else:
-        _, idx_full = jax.lax.top_k(score, K)
-        idx = jnp.concatenate([idx_full, jnp.zeros(capacity - K, idx_full.dtype)])
-        sel_valid = jnp.concatenate([keep[idx_full], jnp.zeros(capacity - K, bool)])
+    idx, sel_valid, labels = select_kept(gm, keep, w, capacity)
     out = jax.tree_util.tree_map(lambda a: a[idx], gm)
     out = out._replace(mask=sel_valid)
     kept_mass = jnp.sum(jnp.where(sel_valid, out.weights, 0.0))
     scale = jnp.where(kept_mass > 0, total / jnp.where(kept_mass > 0, kept_mass, 1.0), 1.0)
     out = sanitize(out._replace(weights=out.weights * scale))
-    pos = jnp.full(K, -1, jnp.int32).at[idx].max(
-        jnp.where(sel_valid, jnp.arange(capacity, dtype=jnp.int32), -1)
-    )
-    labels = jnp.where(gm.mask, pos, -1)
     overflow = n_keep > capacity
     return out, make_info(
         gm, out, labels, pruned_mass=total - kept_mass, overflow=overflow, aux={"scale": scale}
