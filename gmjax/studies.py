@@ -149,36 +149,31 @@ _SEED001_NOTES = (
 )
 
 
-def _seed001_gamma() -> Study:
+_SEED001_TABLES = {
+    # study name -> (table, title, scenario factory name, paper ARMSE per filter, extra note)
+    "gamma": ("seed001-table2", "seed 001 Table 2: 1-D system with Gamma process noise (eqs 44-47)",
+              "gamma_system", (33.25, 30.12, 23.22, 18.86, 18.05, 16.32),
+              "The paper's ARMSE is over k <= 30; ours over all 60 steps. "),
+    "bearings": ("seed001-table3", "seed 001 Table 3: bearings-only tracking with two sensors (eqs 48-52)",
+                 "bearings_only", (0.1532, 0.1530, 0.1203, 0.1056, 0.9234, 0.8021), ""),
+}
+
+
+def _seed001(name: str) -> Study:
+    """Seed 001 Tables 2-3: AGSSCKF and its peers on the Gamma system or the bearings-only target."""
     from gmjax.models import seed001
 
+    table, title, scenario, armse, note = _SEED001_TABLES[name]
+    filters = _seed001_filters()
     return Study(
-        name="gamma",
-        table="seed001-table2",
-        title="seed 001 Table 2: 1-D system with Gamma process noise (eqs 44-47), AGSSCKF and peers",
-        scenario=seed001.gamma_system,
-        filters=_seed001_filters(),
-        paper={n: {"armse": a} for n, a in (("UKF", 33.25), ("SCKF", 30.12), ("GSUKF", 23.22),
-                                             ("GSCKF", 18.86), ("AGSSCKF", 18.05), ("PF", 16.32))},
+        name=name,
+        table=table,
+        title=f"{title}, AGSSCKF and peers",
+        scenario=getattr(seed001, scenario),
+        filters=filters,
+        paper={n: {"armse": a} for n, a in zip(filters, armse)},
         paper_runs=100,
-        notes="The paper's ARMSE is over k <= 30; ours over all 60 steps. " + _SEED001_NOTES,
-        eise_filters=(),
-    )
-
-
-def _seed001_bearings() -> Study:
-    from gmjax.models import seed001
-
-    return Study(
-        name="bearings",
-        table="seed001-table3",
-        title="seed 001 Table 3: bearings-only tracking with two sensors (eqs 48-52), AGSSCKF and peers",
-        scenario=seed001.bearings_only,
-        filters=_seed001_filters(),
-        paper={n: {"armse": a} for n, a in (("UKF", 0.1532), ("SCKF", 0.1530), ("GSUKF", 0.1203),
-                                             ("GSCKF", 0.1056), ("AGSSCKF", 0.9234), ("PF", 0.8021))},
-        paper_runs=100,
-        notes=_SEED001_NOTES,
+        notes=note + _SEED001_NOTES,
         eise_filters=(),
     )
 
@@ -219,8 +214,8 @@ def _seed003(motion: str) -> Study:
 STUDIES: dict[str, Callable[[], Study]] = {
     "jump": _seed000_table7,
     "range_bearing": _seed000_table8,
-    "gamma": _seed001_gamma,
-    "bearings": _seed001_bearings,
+    "gamma": lambda: _seed001("gamma"),
+    "bearings": lambda: _seed001("bearings"),
     "seed003_circular": lambda: _seed003("circular"),
     "seed003_step": lambda: _seed003("step"),
 }

@@ -252,6 +252,18 @@ def from_local(model: StateSpaceModel, local: LocalFilter) -> Filter:
     return Filter(init, predict, update, local.moments)
 
 
+def check_sequence(zs: Array, ts: Array | None) -> tuple[Array, Array]:
+    """Validate a measurement sequence ``zs`` ``(T, m)`` and its times ``ts`` ``(T,)`` (default ``1..T``)."""
+    zs = jnp.asarray(zs)
+    if zs.ndim != 2:
+        raise ValueError(f"zs: expected shape (T, m), got {zs.shape}")
+    T = zs.shape[0]
+    ts = jnp.arange(1, T + 1, dtype=jnp.int32) if ts is None else jnp.asarray(ts)
+    if ts.shape != (T,):
+        raise ValueError(f"ts: expected shape ({T},) to match zs, got {ts.shape}")
+    return zs, ts
+
+
 def run(
     filter: Filter,
     zs: Array,
@@ -277,13 +289,7 @@ def run(
         ``(states, infos)``: pytrees with a leading ``T`` axis; ``states[k]`` is the posterior at
         ``ts[k]``.
     """
-    zs = jnp.asarray(zs)
-    if zs.ndim != 2:
-        raise ValueError(f"zs: expected shape (T, m), got {zs.shape}")
-    T = zs.shape[0]
-    ts = jnp.arange(1, T + 1, dtype=jnp.int32) if ts is None else jnp.asarray(ts)
-    if ts.shape != (T,):
-        raise ValueError(f"ts: expected shape ({T},) to match zs, got {ts.shape}")
+    zs, ts = check_sequence(zs, ts)
     if init_state is None:
         init_state = filter.init() if prior is None else filter.init(prior)
 

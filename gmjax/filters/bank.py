@@ -73,7 +73,15 @@ from jax.scipy.special import logsumexp
 from gmjax import gaussian
 from gmjax import mixture as gmm
 from gmjax._types import Array
-from gmjax.filters._core import Filter, check_model, is_missing, kalman_gain, repair_cov, safe_chol
+from gmjax.filters._core import (
+    Filter,
+    check_model,
+    check_sequence,
+    is_missing,
+    kalman_gain,
+    repair_cov,
+    safe_chol,
+)
 from gmjax.filters.kalman import _affine_parts, _linearized_filter
 from gmjax.mixture import GaussianMixture
 from gmjax.models._base import StateSpaceModel
@@ -452,13 +460,8 @@ def run_bank(
     Returns:
         ``(states, infos)`` with a leading ``T`` axis.
     """
-    zs = jnp.asarray(zs)
-    if zs.ndim != 2:
-        raise ValueError(f"zs: expected shape (T, m), got {zs.shape}")
+    zs, ts = check_sequence(zs, ts)
     T = zs.shape[0]
-    ts = jnp.arange(1, T + 1, dtype=jnp.int32) if ts is None else jnp.asarray(ts)
-    if ts.shape != (T,):
-        raise ValueError(f"ts: expected shape ({T},) to match zs, got {ts.shape}")
     if active is not None:
         active = jnp.asarray(active)
         if active.shape != (T, 2):
