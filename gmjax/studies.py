@@ -304,7 +304,8 @@ def plot_study(study: Study, results: dict[str, MonteCarloResult], path: Path) -
     ax1.set(xlabel="time step", ylabel="RMSE", title=f"RMSE over {next(iter(results.values())).n_runs} runs")
     ax2.set(xlabel="time step", ylabel="live components", title="mixture components after reduction")
     ax1.legend()
-    ax2.legend()
+    if ax2.get_legend_handles_labels()[0]:  # nothing to count when every filter is single-Gaussian
+        ax2.legend()
     fig.suptitle(study.title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
