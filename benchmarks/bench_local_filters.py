@@ -133,7 +133,7 @@ def main(argv=None) -> dict:
     rows, results = [], {}
     for kind, build in builders.items():
         flt = build()
-        batched = jax.jit(jax.vmap(lambda z: jax.vmap(flt.moments)(F.run(flt, z)[0])[0]))
+        batched = jax.jit(jax.vmap(lambda z: F.run(flt, z)[1].mean))
         zj = jnp.asarray(zs)
         timing = time_jax(batched, zj, repeats=repeats)
         means = np.asarray(batched(zj))

@@ -31,7 +31,7 @@ from _common import RESULTS_DIR, markdown_table, write_results  # noqa: E402
 from reference import gsf_np, imm_gsf_np  # noqa: E402
 
 from gmjax import metrics  # noqa: E402
-from gmjax.filters._core import run  # noqa: E402
+from gmjax.filters.base import run  # noqa: E402
 from gmjax.filters.imm import build_imm_gsf  # noqa: E402
 from gmjax.models import seed003, simulate  # noqa: E402
 from gmjax.montecarlo import RunScores, summarize  # noqa: E402
@@ -59,7 +59,7 @@ def _one_run(filt, scenario, key):
     k_sim, k_filt = jax.random.split(key)
     xs, zs, ts = simulate(scenario, k_sim)
     truths = xs[1:]
-    _, infos = run(filt, zs, ts, init_state=filt.init(key=k_filt))
+    _, infos = run(filt, zs, ts, key=k_filt)
     est, cov = infos.mean, infos.cov
     T = truths.shape[0]
     scores = RunScores(
@@ -67,15 +67,15 @@ def _one_run(filt, scenario, key):
         position_sq_error=(est[:, 0] - truths[:, 0]) ** 2,
         nees=metrics.nees(est, cov, truths),
         n_components=infos.n_components,
-        ise=infos.ise,
+        ise=infos.extra["ise"],
         cost=infos.reduction.cost,
-        flags=infos.overflow | infos.repaired | infos.degenerate,
+        flags=infos.flags.any(),
         estimates=None,
         truths=None,
     )
-    lam = infos.mode_infos.reduction.aux.get("lambda", jnp.zeros((T, 2), est.dtype))
+    lam = infos.extra["mode_reduction"].aux.get("lambda", jnp.zeros((T, 2), est.dtype))
     sigma_x = jnp.sqrt(infos.cov[:, 0, 0])
-    return scores, lam, infos.model_probs, sigma_x
+    return scores, lam, infos.extra["model_probs"], sigma_x
 
 
 def run_reducer(filt, scenario, keys):

@@ -2,11 +2,11 @@
 
 1. **PCM-GSF, seed 000 scalar measurement-jump system** (eqs 45–50, Table 7 setting, ``N_u = 20``):
    tune the censoring threshold ``ρ`` and a fixed confidence multiplier ``λ`` of the relaxed PCM
-   (:class:`gmjax.tune.SoftPCM`) on the ARMSE, then run the *hard* PCM-GSF with the tuned ``(ρ, λ)``
+   (``gmjax.reduction.PCM(mode="soft", ...)``) on the ARMSE, then run the *hard* PCM-GSF with the tuned ``(ρ, λ)``
    on held-out runs beside the paper's defaults (``ρ = 0.9544``, ``λ`` searched in ``[1, 3]`` by the
    EISE, seed 000 §IV) and beside the starting point (``ρ = 0.9544``, fixed ``λ = 2``).
 2. **AGSSCKF, seed 001 1-D Gamma-noise system** (eqs 44–47, Table 2): tune the split threshold
-   ``ψ_th`` with a soft split gate (:func:`gmjax.tune.soft_split_gate`, temperature relative to
+   ``ψ_th`` with a soft split gate (:func:`gmjax.reduction.relax.soft_split_gate`, temperature relative to
    ``ψ_th``), evaluate the hard-gated AGSSCKF with the tuned ``ψ_th`` against the paper's
    ``ψ_th = 0.02`` and the starting point on held-out runs. On this system every non-zero degree of
    nonlinearity is far above 0.02, so the loss is flat at the paper's value (the script reports the
@@ -45,6 +45,7 @@ from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import seed000, simulate  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
+from gmjax.reduction.relax import soft_split_gate  # noqa: E402
 
 TRAIN_SEED = 1
 HELDOUT_SEED = 20_261_122  # never used for training
@@ -112,8 +113,8 @@ def pcm_section(args) -> dict:
     print(f"[PCM-GSF] {sc.description[:80]}...")
 
     def factory(p):
-        red = gt.SoftPCM(rho=p["rho"], lam=p["lam"], temperature=T_RHO, lam_temperature=T_LAM, grid_size=9,
-                         max_components=N_U, capacity=N_U)
+        red = PCM(rho=p["rho"], lam=p["lam"], mode="soft", gate_temperature=T_RHO, temperature=T_LAM, grid_size=9,
+                  max_components=N_U, capacity=N_U)
         return build_gsf(sc.model, "ekf", red, capacity=N_U, track_ise=False)
 
     params0 = {"rho": 0.9544, "lam": 2.0}
@@ -172,7 +173,7 @@ def agsf_section(args) -> dict | None:
         return None
     sc = seed001.gamma_system()
     tau = args.psi_temperature
-    gate = gt.soft_split_gate(tau, relative=True)
+    gate = soft_split_gate(tau, relative=True)
 
     def factory(p):
         return build_agsf(sc.model, AGSFConfig(psi_th=p["psi_th"], split_gate=gate))
@@ -182,7 +183,7 @@ def agsf_section(args) -> dict | None:
 
     xs, zs, ts = simulate(sc, jax.random.key(TRAIN_SEED))
     _, infos = jax.jit(lambda z: run(build_agsf(sc.model, AGSFConfig()), z, ts))(zs)
-    don = np.asarray(infos.don_max)
+    don = np.asarray(infos.extra["don_max"])  # StepInfo.extra of the AGSSCKF
     don_q = {q: float(np.quantile(don, q, method="nearest")) for q in (0.0, 0.25, 0.5, 0.75, 1.0)}
     nonzero = don[don > 1e-6]  # the linear phase gives DONs at rounding level (~1e-17)
     # the soft gate's argument (psi / psi_th - 1) / tau at the smallest non-zero DON, for psi_th = 0.02:

@@ -308,7 +308,7 @@ def normalize(gm: GaussianMixture) -> GaussianMixture:
 
 def n_active(gm: GaussianMixture) -> Array:
     """Number of live slots ``()`` int32."""
-    return jnp.sum(gm.mask.astype(jnp.int32))
+    return jnp.sum(gm.mask, dtype=jnp.int32)
 
 
 def compact(gm: GaussianMixture) -> GaussianMixture:

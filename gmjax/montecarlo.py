@@ -6,12 +6,11 @@ on one device they are bit-identical for any chunk size (tested); sharded over s
 each device compiles its own per-device batch shape and XLA may reassociate a sum, so they agree to
 rounding (tested to 1e-12 relative; 3e-14 observed).
 Runs are ``vmap``-ped in chunks that bound memory; each chunk's run axis is sharded over the given
-devices with :mod:`jax.sharding` (DESIGN §5). A progress line over chunks goes to stderr.
+devices with :mod:`jax.sharding` (docs/design.md §5). A progress line over chunks goes to stderr.
 """
 
 from __future__ import annotations
 
-import inspect
 import math
 import sys
 import time
@@ -23,8 +22,8 @@ import numpy as np
 
 from gmjax import metrics
 from gmjax._types import Array, PRNGKey
-from gmjax.filters._core import Filter, run
-from gmjax.models._base import Scenario, simulate
+from gmjax.filters.base import Filter, StepInputs, run
+from gmjax.models.base import Scenario, simulate
 
 __all__ = ["RunScores", "MonteCarloResult", "monte_carlo", "score_run"]
 
@@ -99,28 +98,6 @@ class MonteCarloResult(NamedTuple):
     median_nees: float = float("nan")
 
 
-def _init_takes_key(filter: Filter) -> bool:
-    try:
-        return "key" in inspect.signature(filter.init).parameters
-    except (TypeError, ValueError):
-        return False
-
-
-def _estimates(filter: Filter, states: Any, infos: Any) -> tuple[Array, Array]:
-    """Point estimates ``(T, d)`` and covariances ``(T, d, d)``: the info's if it reports them
-    (Gaussian sum filters report the pre-reduction moments), else ``filter.moments`` of the states."""
-    if hasattr(infos, "mean") and hasattr(infos, "cov"):
-        return infos.mean, infos.cov
-    if filter.moments is None:
-        raise ValueError("filter: has no `moments` and its update info reports no mean/cov")
-    return jax.vmap(filter.moments)(states)
-
-
-def _info_field(infos: Any, name: str, T: int, dtype) -> Array:
-    value = getattr(infos, name, None)
-    return jnp.zeros(T, dtype) if value is None else jnp.asarray(value, dtype)
-
-
 class FilteredRun(NamedTuple):
     """One simulated and filtered run: ``truths``/``estimates`` ``(T, d)``, ``covs`` ``(T, d, d)``,
     the filter's per-step ``infos``, the position dimensions and the per-step failure ``flags``
@@ -134,20 +111,17 @@ class FilteredRun(NamedTuple):
     flags: Array
 
 
-def filter_run(filter: Filter, scenario: Scenario, key: PRNGKey) -> FilteredRun:
-    """Simulate one run of ``scenario`` and filter it (traceable); shared by the scorers."""
+def filter_run(filter: Filter, scenario: Scenario, key: PRNGKey, params: Any = None) -> FilteredRun:
+    """Simulate one run of ``scenario`` and filter it (traceable); shared by the scorers.
+
+    ``params`` overrides ``filter.params`` (differentiate or vmap a study over them).
+    """
     k_sim, k_filt = jax.random.split(key)
     xs, zs, ts = simulate(scenario, k_sim)
     truths = xs[1:]
-    init_state = filter.init(key=k_filt) if _init_takes_key(filter) else filter.init()
-    states, infos = run(filter, zs, ts, init_state=init_state)
-    est, cov = _estimates(filter, states, infos)
+    _, infos = run(filter, zs, StepInputs(t=ts), key=k_filt, params=params)
     pos = list(scenario.position_dims) if scenario.position_dims else list(range(truths.shape[1]))
-    flags = jnp.zeros(truths.shape[0], bool)
-    for name in ("overflow", "repaired", "degenerate"):
-        if getattr(infos, name, None) is not None:
-            flags = flags | jnp.asarray(getattr(infos, name), bool)
-    return FilteredRun(truths, est, cov, infos, pos, flags)
+    return FilteredRun(truths, infos.mean, infos.cov, infos, pos, infos.flags.any())
 
 
 def score_run(filter: Filter, scenario: Scenario, key: PRNGKey, *, keep_trajectories: bool = False) -> RunScores:
@@ -155,14 +129,14 @@ def score_run(filter: Filter, scenario: Scenario, key: PRNGKey, *, keep_trajecto
     r = filter_run(filter, scenario, key)
     truths, est, pos = r.truths, r.estimates, r.position_dims
     T, dtype = truths.shape[0], truths.dtype
-    n_comp = getattr(r.infos, "n_components", None)
-    reduction = getattr(r.infos, "reduction", None)
+    reduction = r.infos.reduction
+    ise = r.infos.extra.get("ise")
     return RunScores(
         sq_error=metrics.squared_error(est, truths),
         position_sq_error=metrics.squared_error(est[:, pos], truths[:, pos]),
         nees=metrics.nees(est, r.covs, truths),
-        n_components=jnp.ones(T, jnp.int32) if n_comp is None else jnp.asarray(n_comp, jnp.int32),
-        ise=_info_field(r.infos, "ise", T, dtype),
+        n_components=jnp.asarray(r.infos.n_components, jnp.int32),
+        ise=jnp.zeros(T, dtype) if ise is None else jnp.asarray(ise, dtype),
         cost=jnp.zeros(T, dtype) if reduction is None else jnp.asarray(reduction.cost, dtype),
         flags=r.flags,
         estimates=est if keep_trajectories else None,

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from gmjax.filters import build_pf
-from gmjax.filters._core import Filter
+from gmjax.filters.base import Filter
 from gmjax.filters.gsf import build_gsf
 from gmjax.models import Scenario, seed000
 from gmjax.montecarlo import MonteCarloResult, monte_carlo

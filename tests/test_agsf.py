@@ -20,13 +20,16 @@ from gmjax import mixture as gmm  # noqa: E402
 from gmjax.filters import run  # noqa: E402
 from gmjax.filters.agsf import (  # noqa: E402
     AGSFConfig,
-    AGSFInfo,
+    AGSFParams,
     AGSFState,
+    Step6Merge,
+    Step6State,
     build_agsf,
     build_gsckf,
     build_gsukf,
     degree_of_nonlinearity,
 )
+from gmjax.filters.base import StepInfo, StepInputs  # noqa: E402
 from gmjax.mixture import GaussianMixture  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
 from gmjax.models.seed001 import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
@@ -145,9 +148,11 @@ def gamma_data():
 
 @pytest.fixture(scope="module")
 def runner(gamma_data):
-    """One compilation for every config with the default static fields (thresholds are traced)."""
+    """One compilation for every config with the default static fields (thresholds are traced and
+    read from ``params.config`` at every call)."""
     sc, _, _, ts = gamma_data
-    return jax.jit(lambda cfg, z: run(build_agsf(sc.model, cfg), z, ts))
+    f = build_agsf(sc.model)
+    return jax.jit(lambda cfg, z: run(f, z, ts, params=f.params._replace(config=cfg)))
 
 
 @pytest.fixture(scope="module")
@@ -166,20 +171,27 @@ def test_agsf_matches_numpy_reference(gamma_data, agsf_runs):
     for i in range(zs.shape[0]):
         filt, prior = _np_gamma_filter()
         means, covs, ref = agsf_np.run(filt, prior, np.asarray(zs[i]), np.asarray(ts))
-        np.testing.assert_array_equal(np.asarray(infos.n_split[i]), [x["n_split"] for x in ref])
+        np.testing.assert_array_equal(np.asarray(infos.extra["n_split"][i]), [x["n_split"] for x in ref])
         np.testing.assert_array_equal(np.asarray(infos.n_components[i]), [x["n_components"] for x in ref])
-        np.testing.assert_array_equal(np.asarray(infos.n_updated[i]), [x["n_updated"] for x in ref])
+        np.testing.assert_array_equal(np.asarray(infos.extra["n_updated"][i]),
+                                      [x["n_updated"] for x in ref])
+        np.testing.assert_array_equal(np.asarray(infos.flags.overflow[i]), [x["truncated"] for x in ref])
         np.testing.assert_allclose(np.asarray(infos.mean[i]), means, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(np.asarray(infos.cov[i]), covs, rtol=1e-7, atol=1e-12)
         total_splits += sum(x["n_split"] for x in ref)
     assert total_splits > 0  # the comparison exercised the adaptive split
-    assert not bool(jnp.any(infos.flags))
+    assert not bool(jnp.any(infos.flags.repaired | infos.flags.degenerate))
     # DON is 0 once h is linear (eq 45, k > 30): no split after the switch
-    assert int(jnp.sum(infos.n_split[:, 30:])) == 0
-    np.testing.assert_allclose(np.asarray(infos.don_max[:, 31:]), 0.0, atol=1e-20)
+    assert int(jnp.sum(infos.extra["n_split"][:, 30:])) == 0
+    np.testing.assert_allclose(np.asarray(infos.extra["don_max"][:, 31:]), 0.0, atol=1e-20)
     # the posterior is a normalised mixture within its capacity (15 // 3 = 5)
     np.testing.assert_allclose(np.asarray(jnp.sum(states.mixture.weights, -1)), 1.0, rtol=1e-12)
-    assert int(jnp.max(infos.n_updated)) <= 15 and states.mixture.capacity == 5
+    assert int(jnp.max(infos.extra["n_updated"])) <= 15 and states.mixture.capacity == 5
+    # Step 6's ReductionInfo: 15 working slots -> 5 posterior slots
+    red = infos.reduction
+    np.testing.assert_array_equal(np.asarray(red.n_out), np.asarray(infos.n_components))
+    np.testing.assert_array_equal(np.asarray(red.n_in), np.asarray(infos.extra["n_updated"]))
+    assert red.labels.shape[-1] == 15 and int(jnp.max(red.labels)) < 5 and int(jnp.min(red.labels)) >= -1
 
 
 def test_vmap_equals_loop(gamma_data, agsf_runs, runner):
@@ -220,14 +232,14 @@ def test_eager_filter_step_equals_jitted_scan(gamma_data, agsf_runs):
     """Eager (op-by-op) predict + update == the jitted scan (slow: ~30 s of eager dispatch)."""
     _, _, zs, ts = gamma_data
     f, (_, infos) = agsf_runs
-    state = f.init()
+    state = f.init(f.params)
     for k in range(2):
-        state = f.predict(state, ts[k])
-        state, info = f.update(state, zs[0, k], ts[k])
-        assert isinstance(state, AGSFState) and isinstance(info, AGSFInfo)
+        state = f.predict(f.params, state, StepInputs(ts[k]))
+        state, info = f.update(f.params, state, zs[0, k], StepInputs(ts[k]))
+        assert isinstance(state, AGSFState) and isinstance(info, StepInfo)
         np.testing.assert_allclose(np.asarray(info.mean), np.asarray(infos.mean[0, k]), rtol=1e-12)
         np.testing.assert_allclose(np.asarray(info.cov), np.asarray(infos.cov[0, k]), rtol=1e-10)
-        assert int(info.n_split) == int(infos.n_split[0, k])
+        assert int(info.extra["n_split"]) == int(infos.extra["n_split"][0, k])
 
 
 def test_psi_inf_equals_gsckf_exactly(gamma_data, runner):
@@ -236,7 +248,7 @@ def test_psi_inf_equals_gsckf_exactly(gamma_data, runner):
     _, a = runner(AGSFConfig(psi_th=math.inf), zs[0])
     _, b = jax.jit(lambda z: run(build_agsf(sc.model, AGSFConfig(max_level=0)), z, ts))(zs[0])
     _, split = runner(AGSFConfig(), zs[0])
-    assert int(jnp.sum(a.n_split)) == 0 and int(jnp.sum(split.n_split)) > 0
+    assert int(jnp.sum(a.extra["n_split"])) == 0 and int(jnp.sum(split.extra["n_split"])) > 0
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
@@ -257,7 +269,7 @@ def test_padded_prior_slots_change_nothing(gamma_data):
         jnp.concatenate([prior.covs[:2], jnp.ones((2, 1, 1)), prior.covs[2:], jnp.ones((1, 1, 1))]),
         jnp.array([True, True, False, False, True, True, True, False]),
     )
-    s0, s1 = f.init(), f.init(padded)
+    s0, s1 = f.init(f.params), f.init(f.params, padded)
     for a, b in zip(jax.tree_util.tree_leaves(s0.mixture), jax.tree_util.tree_leaves(s1.mixture)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
@@ -289,17 +301,25 @@ def test_bad_input_raises_clear_errors():
     with pytest.raises(ValueError, match="config.l"):
         build_agsf(m, AGSFConfig(l=1.5))
     with pytest.raises(ValueError, match="prior"):
-        build_agsf(m, AGSFConfig(capacity=6)).init()  # 6 // 3 = 2 posterior slots < 5 prior terms
+        f6 = build_agsf(m, AGSFConfig(capacity=6))
+        f6.init(f6.params)  # 6 // 3 = 2 posterior slots < 5 prior terms
     with pytest.raises(ValueError, match="config"):
         build_agsf(m, config="fast")
+    with pytest.raises(ValueError, match="config.low_weight"):
+        build_agsf(m, AGSFConfig(low_weight=-1.0))
+    f = build_agsf(m)
+    with pytest.raises(ValueError, match="params.config"):  # static fields differ from the build
+        f.init(f.params._replace(config=AGSFConfig(max_level=1)))
+    with pytest.raises(ValueError, match="params"):
+        f.init(m.params)
 
 
 def test_gsukf_builds_with_ukf_subfilters(gamma_data):
     sc, _, zs, ts = gamma_data
     f = build_gsukf(sc.model)
-    state = f.predict(f.init(), ts[0])
-    state, info = f.update(state, zs[0, 0], ts[0])
-    assert int(info.n_split) == 0 and bool(jnp.isfinite(info.mean).all())
+    state = f.predict(f.params, f.init(f.params), StepInputs(ts[0]))
+    state, info = f.update(f.params, state, zs[0, 0], StepInputs(ts[0]))
+    assert int(info.extra["n_split"]) == 0 and bool(jnp.isfinite(info.mean).all())
 
 
 @pytest.mark.slow
@@ -307,11 +327,136 @@ def test_soft_gate_gradient_wrt_psi_th_is_finite(gamma_data):
     sc, xs, zs, ts = gamma_data
     gate = lambda psi, thr: jax.nn.sigmoid((psi - thr) / (0.1 * thr))  # noqa: E731
 
+    cfg = AGSFConfig(split_gate=gate, max_level=1)
+    f = build_agsf(sc.model, cfg)
+
     def loss(psi_th):
-        cfg = AGSFConfig(psi_th=psi_th, split_gate=gate, max_level=1)
-        _, infos = run(build_agsf(sc.model, cfg), zs[0, :8], ts[:8])
+        params = f.params._replace(config=dataclasses.replace(cfg, psi_th=psi_th))
+        _, infos = run(f, zs[0, :8], ts[:8], params=params)
         return jnp.mean((infos.mean[:, 0] - xs[0, 1:9, 0]) ** 2)
 
     g = jax.jit(jax.grad(loss))(jnp.asarray(0.02))
     assert bool(jnp.isfinite(g))
     assert dataclasses.is_dataclass(AGSFConfig())
+
+
+# --------------------------------------------------------------------------- Step 6 as a reducer
+
+
+def _three_components():
+    """Two close components (slots 0, 2) and a far one (slot 3); slot 1 is padding."""
+    return GaussianMixture(
+        jnp.array([0.5, 0.0, 0.3, 0.2]),
+        jnp.array([[0.0, 0.0], [0.0, 0.0], [0.05, 0.0], [6.0, 1.0]]),
+        jnp.stack([jnp.eye(2), jnp.eye(2), 1.1 * jnp.eye(2), jnp.eye(2)]),
+        jnp.array([True, False, True, True]),
+    )
+
+
+def test_step6_follows_the_reducer_protocol():
+    gm = _three_components()
+    red = Step6Merge(capacity=3)
+    state = red.init(4)
+    assert isinstance(state, Step6State)
+    assert all(jnp.shape(leaf)[0] == 4 for leaf in jax.tree_util.tree_leaves(state))
+    out, new_state, info = red.reduce(gm, state)
+    out2, info2 = red(gm)  # __call__ == reduce from a fresh state
+    for a, b in zip(jax.tree_util.tree_leaves((out, info)), jax.tree_util.tree_leaves((out2, info2))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # a stateful reducer returns exactly its capacity, with a state aligned with the output slots
+    assert out.capacity == 3
+    assert all(jnp.shape(leaf)[0] == 3 for leaf in jax.tree_util.tree_leaves(new_state))
+    # rule 2 (fresh state: "close before" counts as met) merges the close pair into slot 0
+    np.testing.assert_array_equal(np.asarray(info.labels), [0, -1, 0, 1])
+    assert int(info.n_in) == 3 and int(info.n_out) == 2 and int(info.aux["n_merged"]) == 1
+    np.testing.assert_allclose(float(jnp.sum(out.weights)), 1.0, rtol=1e-14)
+    m_in, P_in = gmm.moments(gm)
+    m_out, P_out = gmm.moments(out)  # moment-preserving merge (eq 39, normalised)
+    np.testing.assert_allclose(np.asarray(m_out), np.asarray(m_in), rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(P_out), np.asarray(P_in), rtol=1e-13, atol=1e-14)
+    # the new state names the output as the previous posterior
+    np.testing.assert_array_equal(np.asarray(new_state.ancestor), [0, 1, 2])
+    np.testing.assert_array_equal(np.asarray(new_state.ancestor_weight), np.asarray(out.weights))
+    assert jax.jit(lambda g, s: red.reduce(g, s)[0].weights)(gm, state).shape == (3,)
+
+
+def test_step6_history_gates_the_rules():
+    gm = _three_components()
+    red = Step6Merge()
+    fresh = red.init(4)
+    # rule 2 needs the ancestors to have been close too: distinct ancestors that were far apart
+    far = fresh._replace(ancestor_cost=jnp.full((4, 4), 10.0))
+    out, _, info = red.reduce(gm, far)
+    assert int(info.n_out) == 3 and int(info.aux["n_merged"]) == 0
+    # ... but two descendants of one ancestor were one Gaussian (cost 0 before)
+    siblings = far._replace(ancestor=jnp.array([0, 1, 0, 3], jnp.int32))
+    _, _, info = red.reduce(gm, siblings)
+    np.testing.assert_array_equal(np.asarray(info.labels), [0, -1, 0, 1])
+    # rule 3: low DON now and before merges even far components; unknown DON (inf) does not
+    linear = far._replace(don=jnp.zeros(4))
+    _, _, info = red.reduce(gm, linear)
+    assert int(info.n_out) == 1 and int(info.aux["n_merged"]) == 2
+    # rule 1: both low now and low before; pruning drops what is below prune_threshold
+    light = GaussianMixture(jnp.array([0.99, 0.004, 0.00599, 5e-5]), jnp.array([[0.0], [5.0], [-5.0], [9.0]]),
+                            jnp.ones((4, 1, 1)), jnp.ones(4, bool))
+    st = Step6Merge().init(4)._replace(ancestor_cost=jnp.full((4, 4), 10.0))
+    out, _, info = Step6Merge().reduce(light, st)
+    np.testing.assert_array_equal(np.asarray(info.labels), [0, 1, 1, -1])
+    np.testing.assert_allclose(float(info.pruned_mass), 5e-5, rtol=1e-12)
+    st = st._replace(ancestor_weight=jnp.array([1.0, 1.0, 0.0, 0.0]))  # slot 1 was not low before
+    _, _, info = Step6Merge().reduce(light, st)
+    np.testing.assert_array_equal(np.asarray(info.labels), [0, 1, 2, -1])
+
+
+def test_step6_overflow_keeps_the_heaviest():
+    gm = _three_components()
+    far = Step6Merge().init(4)._replace(ancestor_cost=jnp.full((4, 4), 10.0))
+    out, _, info = Step6Merge(capacity=2).reduce(gm, far)
+    assert bool(info.overflow) and int(info.n_out) == 2
+    np.testing.assert_array_equal(np.asarray(info.labels), [0, -1, 1, -1])
+    np.testing.assert_allclose(np.asarray(out.weights), [0.5 / 0.8, 0.3 / 0.8], rtol=1e-14)
+    with pytest.raises(ValueError, match="state.don"):
+        Step6Merge().reduce(gm, Step6Merge().init(3))
+
+
+# --------------------------------------------------------------------------- the contract
+
+
+def test_run_jit_equals_eager(gamma_data):
+    sc, _, zs, ts = gamma_data
+    f = build_agsf(sc.model)
+    eager = run(f, zs[1, :8], ts[:8])
+    jitted = jax.jit(lambda z: run(f, z, ts[:8]))(zs[1, :8])
+    assert int(jnp.sum(eager[1].extra["n_split"])) > 0  # the short run splits (at k = 7)
+    for a, b in zip(jax.tree_util.tree_leaves(eager), jax.tree_util.tree_leaves(jitted)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-14)
+
+
+def test_loglik_gradient_wrt_process_noise_matches_finite_difference(gamma_data):
+    """d/dQ_0 of the summed log-likelihood through ``run`` (reverse mode) == central difference.
+
+    The default filter (hard gate, early-exit loops differentiated by their custom JVP rule). Split
+    and merge decisions are piecewise constant in Q, so the derivative is that of the smooth branch
+    the run takes.
+    """
+    sc, _, zs, ts = gamma_data
+    f = build_agsf(sc.model)
+    assert isinstance(f.params, AGSFParams)
+    n = 8  # run 1 splits at k = 7
+
+    def total(q00):
+        qn = f.params.model.process_noise
+        qn = qn._replace(covs=qn.covs.at[0, 0, 0].set(q00))
+        params = f.params._replace(model=f.params.model._replace(process_noise=qn))
+        _, infos = run(f, zs[1, :n], ts[:n], params=params)
+        return jnp.sum(infos.loglik), jnp.sum(infos.extra["n_split"])
+
+    q0 = f.params.model.process_noise.covs[0, 0, 0]
+    (value, n_split), grad = jax.jit(jax.value_and_grad(total, has_aux=True))(q0)
+    assert int(n_split) > 0
+    eps = 1e-5 * q0
+    tot = jax.jit(lambda q: total(q)[0])
+    fd = (tot(q0 + eps) - tot(q0 - eps)) / (2 * eps)
+    assert bool(jnp.isfinite(grad)) and abs(float(grad)) > 0
+    np.testing.assert_allclose(float(value), float(tot(q0)), rtol=1e-12)
+    np.testing.assert_allclose(float(grad), float(fd), rtol=1e-5)

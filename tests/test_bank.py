@@ -13,8 +13,8 @@ import pytest
 
 from gmjax import filters
 from gmjax import mixture as gmm
-from gmjax.filters import bank
-from gmjax.models import seed004
+from gmjax.filters import StepInputs, bank
+from gmjax.models import ModelParams, seed004
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from reference.bank_np import _dare, bank_filter_np  # noqa: E402
@@ -31,16 +31,25 @@ def _model(process, measurement, dtype=jnp.float64):
     return seed004.rwv_model(process, measurement, dtype=dtype)
 
 
+def _inputs(active):
+    """Times ``1..T`` and the true active pairs ``(T, 2)`` (read by ``matched``) as ``inputs.aux``."""
+    return StepInputs(t=jnp.arange(1, active.shape[0] + 1, dtype=jnp.int32), aux=active)
+
+
+def _params(filt, q, r):
+    """``filt.params`` with the noise mixtures replaced (a traced pytree: one kernel per shape)."""
+    return bank.BankParams(ModelParams(filt.params.model.prior, q, r))
+
+
 @functools.lru_cache(maxsize=None)
 def _runner(method: str, dtype=jnp.float64):
-    """One compiled kernel per (method, shapes): the noise mixtures are traced arguments."""
+    """One compiled kernel per (method, shapes): the noise mixtures are traced arguments of params."""
     base = _model(seed004.synthetic_noise(1, 1.0), seed004.synthetic_noise(1, 1.0), dtype)
+    filt = bank.build_bank(base, method, noise_gain=jnp.asarray(G, dtype))
 
     @jax.jit
     def run(q, r, zs, active):
-        model = base._replace(process_noise=q, measurement_noise=r)
-        filt = bank.build_bank(model, method, noise_gain=jnp.asarray(G, dtype))
-        return bank.run_bank(filt, zs, active=active)
+        return filters.run(filt, zs, _inputs(active), params=_params(filt, q, r))
 
     return run
 
@@ -64,7 +73,7 @@ def test_each_method_matches_the_numpy_reference_on_model_3():
         ref = bank_filter_np(method, np.asarray(run.zs), F, H, _np_noise(q), _np_noise(r), PRIOR,
                              active=np.asarray(run.active), G=G)
         np.testing.assert_allclose(np.asarray(infos.mean), ref, rtol=1e-9, atol=1e-9, err_msg=method)
-        assert not bool(infos.repaired.any() | infos.degenerate.any()), method
+        assert not bool(infos.flags.repaired.any() | infos.flags.degenerate.any()), method
 
 
 @pytest.mark.slow
@@ -76,7 +85,7 @@ def test_each_method_matches_the_numpy_reference_on_uwb(axis):
     q, r = model.process_noise, model.measurement_noise
     for method in bank.BANK_METHODS:
         filt = bank.build_bank(model, method)  # noise_gain="auto" here
-        _, infos = jax.jit(lambda zs, a: bank.run_bank(filt, zs, active=a))(run.zs, run.active)
+        _, infos = jax.jit(lambda zs, a: filters.run(filt, zs, _inputs(a)))(run.zs, run.active)
         ref = bank_filter_np(method, np.asarray(run.zs), F, H, _np_noise(q), _np_noise(r), PRIOR,
                              active=np.asarray(run.active), G=G)
         np.testing.assert_allclose(np.asarray(infos.mean), ref, rtol=1e-9, atol=1e-7, err_msg=method)
@@ -119,8 +128,8 @@ def test_red_pkg_equals_red_gsfm_when_all_clusters_share_one_variance():
     q, r = model.process_noise, model.measurement_noise
     _, a = _runner("red-gsfm")(q, r, run.zs, run.active)
     _, b = _runner("red-pkg")(q, r, run.zs, run.active)
-    np.testing.assert_array_equal(np.asarray(a.active), np.asarray(b.active))
-    np.testing.assert_allclose(np.asarray(a.initial), np.asarray(b.initial), rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(a.extra["active"]), np.asarray(b.extra["active"]))
+    np.testing.assert_allclose(np.asarray(a.extra["initial"]), np.asarray(b.extra["initial"]), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), rtol=1e-9, atol=1e-9)
 
 
@@ -132,10 +141,10 @@ def test_padded_noise_slots_change_nothing():
     q7, r7 = gmm.pad(q, 7), gmm.pad(r, 7)
     for method in ("red-gsfm",):
         filt = bank.build_bank(model._replace(process_noise=q7, measurement_noise=r7), method, noise_gain=G)
-        _, padded = jax.jit(lambda zs, a: bank.run_bank(filt, zs, active=a))(run.zs, run.active)
+        _, padded = jax.jit(lambda zs, a: filters.run(filt, zs, _inputs(a)))(run.zs, run.active)
         _, plain = _runner(method)(q, r, run.zs, run.active)
         np.testing.assert_allclose(np.asarray(padded.mean), np.asarray(plain.mean), rtol=1e-12, atol=1e-12)
-        np.testing.assert_array_equal(np.asarray(padded.active), np.asarray(plain.active))
+        np.testing.assert_array_equal(np.asarray(padded.extra["active"]), np.asarray(plain.extra["active"]))
         assert np.all(np.isfinite(np.asarray(padded.cov)))
 
 
@@ -147,14 +156,18 @@ def test_jit_equals_eager(method):
     model = _model(noise, noise)
     run = _simulate(noise, noise, 7, T)
     filt = bank.build_bank(model, method, noise_gain=G)
-    state = filt.init()
-    eager = []
+    params = filt.params
+    state = filt.init(params)
+    eager, eager_ll = [], []
     for k in range(3):
-        state = filt.predict(state, k + 1)
-        state, info = filt.update(state, run.zs[k], k + 1, active=run.active[k])
+        inp = StepInputs(t=jnp.int32(k + 1), aux=run.active[k])
+        state = filt.predict(params, state, inp)
+        state, info = filt.update(params, state, run.zs[k], inp)
         eager.append(np.asarray(info.mean))
+        eager_ll.append(float(info.loglik))
     _, infos = _runner(method)(model.process_noise, model.measurement_noise, run.zs, run.active)
     np.testing.assert_allclose(np.asarray(infos.mean[:3]), np.array(eager), rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(np.asarray(infos.loglik[:3]), np.array(eager_ll), rtol=1e-11, atol=1e-11)
 
 
 @functools.lru_cache(maxsize=None)
@@ -228,7 +241,7 @@ def test_float32_runs_and_agrees_with_float64(method):
     assert np.all(np.isfinite(np.asarray(i32.mean))) and np.all(np.isfinite(np.asarray(i32.cov)))
     # same selections, estimates to float32 precision of the state's scale (~100)
     if method != "gsf-merge":
-        agree = np.mean(np.all(np.asarray(i32.active) == np.asarray(i64.active), axis=1))
+        agree = np.mean(np.all(np.asarray(i32.extra["active"]) == np.asarray(i64.extra["active"]), axis=1))
         assert agree >= 0.9, agree
     else:
         np.testing.assert_allclose(np.asarray(i32.mean), np.asarray(i64.mean), rtol=1e-3, atol=1e-3)
@@ -254,12 +267,14 @@ def test_missing_measurement_is_the_moment_matched_prediction():
     zs = run.zs.at[5].set(jnp.nan)
     for method in ("gsf-merge", "red-gsfr", "matched"):
         states, infos = _runner(method)(q, r, zs, run.active)
-        pred = gmm.GaussianMixture(q.weights, states.pred_means[5], states.pred_covs[5], q.mask)
+        pred = gmm.GaussianMixture(q.weights, states.predicted.means[5], states.predicted.covs[5], q.mask)
         mean, cov = gmm.moments(pred)
         np.testing.assert_allclose(np.asarray(infos.mean[5]), np.asarray(mean), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(infos.cov[5]), np.asarray(cov), rtol=1e-12, atol=1e-12)
-        assert bool(infos.missing[5]) and list(np.asarray(infos.active[5])) == [-1, -1]
-        assert not bool(infos.missing[6]) and np.all(np.isfinite(np.asarray(infos.mean)))
+        missing, active = infos.extra["missing"], infos.extra["active"]
+        assert bool(missing[5]) and list(np.asarray(active[5])) == [-1, -1]
+        assert not bool(missing[6]) and np.all(np.isfinite(np.asarray(infos.mean)))
+        assert float(infos.loglik[5]) == 0.0 and np.all(np.isfinite(np.asarray(infos.loglik)))
 
 
 def test_bad_arguments_raise_clear_errors():
@@ -274,14 +289,19 @@ def test_bad_arguments_raise_clear_errors():
     with pytest.raises(ValueError, match="ssg_iterations"):
         bank.build_bank(model, "red-ssg", ssg_iterations=0)
     filt = bank.build_bank(model, "matched")
-    state = filt.predict(filt.init(), 1)
-    with pytest.raises(ValueError, match="active"):
-        filt.update(state, jnp.array([0.0]), 1)
-    with pytest.raises(ValueError, match="active"):
-        bank.run_bank(filt, jnp.zeros((5, 1)), active=jnp.zeros((4, 2), jnp.int32))
+    inp = StepInputs(t=jnp.int32(1))
+    state = filt.predict(filt.params, filt.init(filt.params), inp)
+    with pytest.raises(ValueError, match="inputs.aux"):
+        filt.update(filt.params, state, jnp.array([0.0]), inp)
+    with pytest.raises(ValueError, match="inputs.aux"):
+        filt.update(filt.params, state, jnp.array([0.0]), inp._replace(aux=jnp.zeros((3,), jnp.int32)))
+    with pytest.raises(ValueError, match="inputs.aux"):
+        filters.run(filt, jnp.zeros((5, 1)))  # no active pairs at all
+    with pytest.raises(ValueError, match="inputs.aux"):
+        filters.run(filt, jnp.zeros((5, 1)), StepInputs(t=jnp.arange(1, 6), aux=jnp.zeros((4, 2), jnp.int32)))
     with pytest.raises(ValueError, match="noise_gain"):
         jax.jit(lambda s: bank.build_bank(
-            _model(seed004.ScalarGM(jnp.ones(1), jnp.zeros(1), s * jnp.ones(1)), noise), "red-gsfm").init().mean)(1.0)
+            _model(seed004.ScalarGM(jnp.ones(1), jnp.zeros(1), s * jnp.ones(1)), noise), "red-gsfm").params)(1.0)
 
 
 def test_auto_noise_gain_finds_the_noise_line():
@@ -289,3 +309,86 @@ def test_auto_noise_gain_finds_the_noise_line():
     Gp = bank._resolve_noise_gain("auto", _model(noise, noise).process_noise)
     assert Gp.shape == (1, 2)
     np.testing.assert_allclose(np.abs(np.asarray(Gp)[0]), np.array([DT, 1.0]) / np.hypot(DT, 1.0), rtol=1e-9)
+
+
+def _eq9_loglik_np(m, P, z, q, r):
+    """``log sum_ij w^i p^j N(z; H(F m + u^i) + b^j, H(F P F^T + Q^i)H^T + R^j)`` in NumPy."""
+    terms = []
+    for wi, ui, Qi in zip(*q):
+        mp, Pp = F @ m + ui, F @ P @ F.T + Qi
+        for pj, bj, Rj in zip(*r):
+            S = H @ Pp @ H.T + Rj
+            y = z - H @ mp - bj
+            quad = y @ np.linalg.solve(S, y) + np.log(np.linalg.det(2 * np.pi * S))
+            terms.append(np.log(wi) + np.log(pj) - 0.5 * quad)
+    terms = np.array(terms)
+    return terms.max() + np.log(np.sum(np.exp(terms - terms.max())))
+
+
+@pytest.mark.parametrize("method", ["gsf-merge", "red-gsfm", "kf-mm"])
+def test_step_info_loglik_is_the_eq9_normaliser_and_the_fixed_fields(method):
+    noise = seed004.synthetic_noise(3, 0.6)
+    model = _model(noise, noise)
+    run = _simulate(noise, noise, 12, T)
+    q, r = model.process_noise, model.measurement_noise
+    states, infos = _runner(method)(q, r, run.zs, run.active)
+    qn, rn = _np_noise(q), _np_noise(r)
+    if method == "kf-mm":  # one model: the moment-matched noises
+        qn = tuple(np.asarray(a)[None] for a in (1.0, *gmm.moments(q)))
+        rn = tuple(np.asarray(a)[None] for a in (1.0, *gmm.moments(r)))
+    means = np.concatenate([PRIOR[0][None], np.asarray(infos.mean)])
+    covs = np.concatenate([PRIOR[1][None], np.asarray(infos.cov)])
+    ref = [_eq9_loglik_np(means[k], covs[k], np.asarray(run.zs[k]), qn, rn) for k in range(T)]
+    np.testing.assert_allclose(np.asarray(infos.loglik), ref, rtol=1e-10, atol=1e-10)
+    assert np.all(np.asarray(infos.n_components) == 1) and infos.n_components.dtype == jnp.int32
+    assert not np.any(np.asarray(infos.flags.overflow)) and infos.reduction is None
+    assert set(infos.extra) == {"initial", "active", "missing"}
+    assert infos.extra["active"].shape == (T, 2) and infos.extra["initial"].shape == (T, 2)
+
+
+def _perturbed_total(filt, zs, active, objective):
+    """``s -> objective(infos)`` with ``s`` added to entry ``(1, 1)`` of the first process-noise cluster."""
+
+    def total(s):
+        model = filt.params.model
+        q = model.process_noise._replace(covs=model.process_noise.covs.at[0, 1, 1].add(s))
+        params = filt.params._replace(model=model._replace(process_noise=q))
+        return objective(filters.run(filt, zs, _inputs(active), params=params)[1])
+
+    return total
+
+
+@pytest.mark.parametrize("method,objective", [
+    ("gsf-merge", "loglik"),
+    ("red-gsfm", "loglik"),
+    ("matched", "loglik"),
+    ("red-ssg", "initial"),  # through the steady-state gains computed from params in init
+])
+def test_grad_wrt_a_process_noise_covariance_matches_central_differences(method, objective):
+    noise = seed004.synthetic_noise(3, 0.6)
+    model = _model(noise, noise)
+    run = _simulate(noise, noise, 13, T)
+    filt = bank.build_bank(model, method, noise_gain=G)
+    pick = {"loglik": lambda i: jnp.sum(i.loglik), "initial": lambda i: jnp.sum(i.extra["initial"][:, 0])}
+    total = jax.jit(_perturbed_total(filt, run.zs, run.active, pick[objective]))
+    g = float(jax.jit(jax.grad(total))(0.0))
+    eps = 1e-5
+    fd = (float(total(eps)) - float(total(-eps))) / (2 * eps)
+    assert np.isfinite(g) and g != 0.0
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-8)
+
+
+def test_vmap_over_two_parameter_sets_equals_two_runs():
+    noise = seed004.synthetic_noise(2, 0.4)
+    model = _model(noise, noise)
+    run = _simulate(noise, noise, 14, T)
+    filt = bank.build_bank(model, "red-gsfr", noise_gain=G)
+    q = model.process_noise
+    q2 = q._replace(covs=2.0 * q.covs)
+    both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), filt.params,
+                                  filt.params._replace(model=filt.params.model._replace(process_noise=q2)))
+    _, infos = jax.jit(jax.vmap(lambda p: filters.run(filt, run.zs, _inputs(run.active), params=p)))(both)
+    for n, qq in enumerate((q, q2)):
+        _, one = _runner("red-gsfr")(qq, model.measurement_noise, run.zs, run.active)
+        np.testing.assert_allclose(np.asarray(infos.mean[n]), np.asarray(one.mean), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(infos.loglik[n]), np.asarray(one.loglik), rtol=1e-12, atol=1e-12)

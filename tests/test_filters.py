@@ -120,7 +120,7 @@ def test_kf_matches_filterpy():
         ys.append(kf.y.copy())
     states, infos = runner("kf", linear_model)[1](jnp.asarray(zs))
     _assert_states(states, np.array(xs), np.array(Ps), np.array(lls), infos)
-    np.testing.assert_allclose(np.asarray(infos.innovation), np.array(ys), rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(infos.extra["innovation"]), np.array(ys), rtol=1e-8, atol=1e-8)
     # local_kf with explicit matrices is the same filter
     loc = F.local_kf(A_LIN, H_LIN)
     s2, i2 = jax.jit(lambda z: F.run(F.from_local(linear_model(), loc), z))(jnp.asarray(zs))
@@ -194,12 +194,12 @@ def test_sckf_equals_ckf():
     s1, i1 = runner("ckf")[1](zs)
     sq, run_sq = runner("sckf")
     s2, i2 = run_sq(zs)
-    m2, P2 = jax.vmap(sq.moments)(s2)
+    m2, P2 = i2.mean, i2.cov
     np.testing.assert_allclose(np.asarray(m2), np.asarray(s1.mean), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(np.asarray(P2), np.asarray(s1.cov), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(np.asarray(i2.loglik), np.asarray(i1.loglik), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(
-        np.asarray(i2.innovation_cov), np.asarray(i1.innovation_cov), rtol=1e-9, atol=1e-9
+        np.asarray(i2.extra["innovation_cov"]), np.asarray(i1.extra["innovation_cov"]), rtol=1e-9, atol=1e-9
     )
     # the carried factor is lower triangular with a non-negative diagonal
     chol = np.asarray(s2.chol)
@@ -243,7 +243,7 @@ def test_every_filter_equals_kf_on_linear_gaussian(name):
     ref, rinfo = runner("kf", linear_model)[1](zs)
     flt, run_ = runner(name, linear_model)
     st, info = run_(zs)
-    mean, cov = jax.vmap(flt.moments)(st)
+    mean, cov = info.mean, info.cov
     tol = 1e-6 if name == "ukf_merwe" else 1e-9  # alpha = 1e-3 has weights ~1e6: cancellation
     np.testing.assert_allclose(np.asarray(mean), np.asarray(ref.mean), rtol=tol, atol=tol)
     np.testing.assert_allclose(np.asarray(cov), np.asarray(ref.cov), rtol=tol, atol=tol)
@@ -331,12 +331,12 @@ def test_nan_measurement_is_predict_only(name):
     states, infos = run_(jnp.asarray(zs_nan))
     # step 4: the posterior equals the prediction from step 3
     s3 = jax.tree_util.tree_map(lambda a: a[3], states)
-    pred = jax.jit(flt.predict)(s3, 5)
+    pred = jax.jit(lambda s: flt.predict(flt.params, s, F.StepInputs(t=jnp.int32(5))))(s3)
     s4 = jax.tree_util.tree_map(lambda a: a[4], states)
     for x, y in zip(jax.tree_util.tree_leaves(s4), jax.tree_util.tree_leaves(pred)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-14, atol=1e-14)
     assert float(infos.loglik[4]) == 0.0
-    assert np.all(np.asarray(infos.innovation[4]) == 0.0)
+    assert np.all(np.asarray(infos.extra["innovation"][4]) == 0.0)
     assert np.all(np.isfinite(np.asarray(infos.loglik)))
     # gradients of the total log-likelihood w.r.t. the measurements stay finite (0 at the NaN)
     g = jax.jit(jax.grad(lambda z: jnp.sum(run_(z)[1].loglik)))(jnp.asarray(zs_nan))
@@ -398,13 +398,12 @@ def test_float32_tracks_float64(name):
     flt32, run32 = runner(name, dtype=jnp.float32)
     s64, i64 = run64(jnp.asarray(zs, jnp.float64))
     s32, i32 = run32(jnp.asarray(zs, jnp.float32))
-    m64, _ = jax.vmap(flt64.moments)(s64)
-    m32, _ = jax.vmap(flt32.moments)(s32)
+    m64, m32 = i64.mean, i32.mean
     assert m32.dtype == jnp.float32 and i32.loglik.dtype == jnp.float32
-    sd = np.sqrt(np.diagonal(np.asarray(jax.vmap(flt64.moments)(s64)[1]), axis1=1, axis2=2))
+    sd = np.sqrt(np.diagonal(np.asarray(i64.cov), axis1=1, axis2=2))
     # float32 rounding moves the estimate by a tiny fraction of its own standard deviation
     assert np.max(np.abs(np.asarray(m32) - np.asarray(m64)) / sd) < 1e-2
-    assert not np.any(np.asarray(i32.repaired))
+    assert not np.any(np.asarray(i32.flags.repaired))
 
 
 # ---- bad input ---------------------------------------------------------------------------------
@@ -433,7 +432,7 @@ def test_bad_input_raises():
         F.local_kf(np.eye(2), np.ones((1, 3)))
     with pytest.raises(ValueError, match="zs"):
         F.run(F.build_ckf(model), jnp.zeros(5))
-    with pytest.raises(ValueError, match="ts"):
+    with pytest.raises(ValueError, match="inputs.t"):
         F.run(F.build_ckf(model), jnp.zeros((5, 2)), jnp.arange(4))
 
 
@@ -456,3 +455,68 @@ def test_safe_chol_repairs_flags_and_matches_numpy():
     assert float(fixed.jitter) > 0.5  # at least the negative eigenvalue's size
     g = jax.jit(jax.grad(lambda A: jnp.sum(safe_chol(A).factor)))(jnp.asarray(bad))
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+# ---- parameters are data -----------------------------------------------------------------------
+def test_kalman_filter_from_arrays_equals_model_kf_and_filterpy_loglik():
+    from filterpy.kalman import KalmanFilter
+
+    zs = linear_data(2, 30)
+    kf_arrays = F.kalman_filter(A_LIN, H_LIN, Q, R_LIN, X0, P0)
+    s1, i1 = jax.jit(lambda z: F.run(kf_arrays, z))(jnp.asarray(zs))
+    s2, i2 = runner("kf", linear_model)[1](jnp.asarray(zs))
+    np.testing.assert_allclose(np.asarray(s1.mean), np.asarray(s2.mean), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(i1.loglik), np.asarray(i2.loglik), rtol=1e-12, atol=1e-12)
+    ref = KalmanFilter(4, 2)
+    ref.x, ref.P, ref.F, ref.H, ref.Q, ref.R = X0.copy(), P0.copy(), A_LIN, H_LIN, Q, R_LIN
+    lls = []
+    for z in zs:
+        ref.predict()
+        ref.update(z)
+        lls.append(ref.log_likelihood)
+    np.testing.assert_allclose(np.asarray(i1.loglik), lls, rtol=1e-8, atol=1e-8)
+    with pytest.raises(ValueError, match="Q"):
+        F.kalman_filter(A_LIN, H_LIN, np.eye(3), R_LIN, X0, P0)
+
+
+def _central_difference(fn, x, eps=1e-6):
+    return (fn(x + eps) - fn(x - eps)) / (2 * eps)
+
+
+@pytest.mark.parametrize("name", ["ukf", "kf_arrays"])
+def test_grad_of_loglik_wrt_process_noise_matches_finite_differences(name):
+    """``jax.grad`` of the summed log-likelihood through ``run`` w.r.t. a process-noise variance."""
+    zs = jnp.asarray(simulate(4, 25) if name == "ukf" else linear_data(4, 25))
+    if name == "ukf":
+        flt = F.build_ukf(nonlinear_model())
+
+        def with_q(q00):
+            q = flt.params.process_noise
+            return flt.params._replace(process_noise=q._replace(covs=q.covs.at[0, 0, 0].set(q00)))
+    else:
+        flt = F.kalman_filter(A_LIN, H_LIN, Q, R_LIN, X0, P0)
+
+        def with_q(q00):
+            return flt.params._replace(Q=flt.params.Q.at[0, 0].set(q00))
+
+    def total(q00):
+        return jnp.sum(F.run(flt, zs, params=with_q(q00))[1].loglik)
+
+    g = float(jax.jit(jax.grad(total))(Q[0, 0]))
+    fd = float(_central_difference(jax.jit(total), Q[0, 0]))
+    assert np.isfinite(g) and abs(g) > 1e-3
+    np.testing.assert_allclose(g, fd, rtol=1e-5)
+
+
+def test_vmap_over_measurement_noise_equals_loop():
+    flt = F.build_ckf(nonlinear_model())
+    zs = jnp.asarray(simulate(5, 20))
+    scales = jnp.array([0.5, 1.0, 3.0])
+
+    def loglik(scale):
+        r = flt.params.measurement_noise
+        return F.run(flt, zs, params=flt.params._replace(measurement_noise=r._replace(covs=r.covs * scale)))[1].loglik
+
+    batched = jax.jit(jax.vmap(loglik))(scales)
+    for i, s in enumerate(scales):
+        np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(jax.jit(loglik)(s)), rtol=1e-12)

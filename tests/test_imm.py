@@ -1,5 +1,7 @@
 """IMM: agreement with FilterPy's IMMEstimator (two Kalman filters, 100 steps, float64), identical
-models reduce to the local filter, NaN measurements, jit/vmap, square-root locals, bad input."""
+models reduce to the local filter, NaN measurements, jit/vmap, square-root locals, gradients with
+respect to a process-noise entry of ``filter.params`` against central finite differences, jit == eager
+step by step, bad input."""
 
 import jax
 import jax.numpy as jnp
@@ -7,6 +9,8 @@ import numpy as np
 import pytest
 
 from gmjax import filters as F
+from gmjax.filters.base import StepInputs
+from gmjax.filters.imm import IMMParams
 from gmjax.mixture import GaussianMixture as GM
 from gmjax.models import StateSpaceModel
 
@@ -64,14 +68,15 @@ def test_imm_matches_filterpy():
     ours = F.build_imm(
         [make_model(CV, Q1), make_model(DAMPED, Q2)], TRANS, filter="kf", initial_probs=MU0
     )
+    assert isinstance(ours.params, IMMParams)
     states, infos = jax.jit(lambda z: F.run(ours, z))(jnp.asarray(zs))
-    mean, cov = jax.vmap(ours.moments)(states)
+    mean, cov = infos.mean, infos.cov
     np.testing.assert_allclose(np.asarray(mean), np.array(xs), rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(np.asarray(cov), np.array(Ps), rtol=1e-8, atol=1e-8)
-    np.testing.assert_allclose(np.asarray(infos.model_probs), np.array(mus), rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(infos.extra["model_probs"]), np.array(mus), rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(np.asarray(states.states.mean[:, 1]), np.array(x1), rtol=1e-8, atol=1e-8)
     # the model probabilities follow the regime switches (a sanity check on the data)
-    mu = np.asarray(infos.model_probs)
+    mu = np.asarray(infos.extra["model_probs"])
     assert mu[15:25, 0].mean() > 0.5 and mu[35:50, 1].mean() > 0.5
 
 
@@ -83,7 +88,7 @@ def test_identical_models_equal_the_local_filter(kind):
     single = {"kf": F.build_kf, "ckf": F.build_ckf}[kind](m)
     s_imm, i_imm = jax.jit(lambda z: F.run(imm, z))(zs)
     s_one, i_one = jax.jit(lambda z: F.run(single, z))(zs)
-    mean, cov = jax.vmap(imm.moments)(s_imm)
+    mean, cov = i_imm.mean, i_imm.cov
     np.testing.assert_allclose(np.asarray(mean), np.asarray(s_one.mean), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(np.asarray(cov), np.asarray(s_one.cov), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(np.asarray(i_imm.loglik), np.asarray(i_one.loglik), rtol=1e-10)
@@ -97,14 +102,14 @@ def test_sqrt_local_filters_and_nan_measurement():
     b = F.build_imm(models, TRANS, filter="ckf", initial_probs=MU0)
     sa, ia = jax.jit(lambda z: F.run(a, z))(jnp.asarray(zs))
     sb, ib = jax.jit(lambda z: F.run(b, z))(jnp.asarray(zs))
-    ma, Pa = jax.vmap(a.moments)(sa)
-    mb, Pb = jax.vmap(b.moments)(sb)
+    ma, Pa = ia.mean, ia.cov
+    mb, Pb = ib.mean, ib.cov
     np.testing.assert_allclose(np.asarray(ma), np.asarray(mb), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(np.asarray(Pa), np.asarray(Pb), rtol=1e-9, atol=1e-9)
     # NaN step: log-likelihood 0 and the model probabilities are the predicted c = mu P
     assert float(ib.loglik[5]) == 0.0
-    mu4 = np.asarray(ib.model_probs[4])
-    np.testing.assert_allclose(np.asarray(ib.model_probs[5]), mu4 @ TRANS, rtol=1e-12)
+    mu4 = np.asarray(ib.extra["model_probs"][4])
+    np.testing.assert_allclose(np.asarray(ib.extra["model_probs"][5]), mu4 @ TRANS, rtol=1e-12)
 
 
 def test_jit_eager_and_vmap_loop():
@@ -119,16 +124,68 @@ def test_jit_eager_and_vmap_loop():
     np.testing.assert_allclose(np.asarray(eager[1].loglik), np.asarray(jgo(zs[0])[1].loglik), rtol=1e-12)
     for i in range(1, 3):
         one = jgo(zs[i])
-        np.testing.assert_allclose(np.asarray(one[1].model_probs), np.asarray(batched[1].model_probs[i]), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(one[1].extra["model_probs"]),
+                                   np.asarray(batched[1].extra["model_probs"][i]), rtol=1e-12)
 
 
 def test_float32():
     models = [make_model(CV, Q1, jnp.float32), make_model(DAMPED, Q2, jnp.float32)]
     imm = F.build_imm(models, TRANS, filter="kf")
     s, i = jax.jit(lambda z: F.run(imm, z))(jnp.asarray(data(3, 20), jnp.float32))
-    assert i.model_probs.dtype == jnp.float32
+    assert i.extra["model_probs"].dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(i.loglik)))
-    np.testing.assert_allclose(np.asarray(i.model_probs).sum(1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(i.extra["model_probs"]).sum(1), 1.0, rtol=1e-5)
+
+
+def _with_q_entry(params, value, model=1, index=(0, 1, 1)):
+    """``params`` with one process-noise covariance entry of ``models[model]`` set to ``value``
+    (the symmetric partner follows when off-diagonal)."""
+    mp = params.models[model]
+    covs = mp.process_noise.covs.at[index].set(value)
+    covs = covs.at[(index[0], index[2], index[1])].set(value)
+    models = list(params.models)
+    models[model] = mp._replace(process_noise=mp.process_noise._replace(covs=covs))
+    return params._replace(models=tuple(models))
+
+
+def test_grad_of_loglik_wrt_process_noise_matches_finite_difference():
+    models = [make_model(CV, Q1), make_model(DAMPED, Q2)]
+    imm = F.build_imm(models, TRANS, filter="kf", initial_probs=MU0)
+    zs = jnp.asarray(data(4, 15))
+    q0 = float(imm.params.models[1].process_noise.covs[0, 1, 1])
+
+    def total(q):
+        return jnp.sum(F.run(imm, zs, params=_with_q_entry(imm.params, q))[1].loglik)
+
+    g = jax.jit(jax.grad(total))(q0)
+    eps = 1e-5
+    fd = (total(q0 + eps) - total(q0 - eps)) / (2 * eps)
+    assert np.isfinite(float(g))
+    np.testing.assert_allclose(float(g), float(fd), rtol=1e-6, atol=1e-8)
+    # the transition matrix is a parameter too: vmap over two of them
+    trans = jnp.stack([imm.params.transition, jnp.asarray([[0.5, 0.5], [0.5, 0.5]])])
+    out = jax.vmap(lambda P: F.run(imm, zs, params=imm.params._replace(transition=P))[1].loglik)(trans)
+    np.testing.assert_allclose(out[0], F.run(imm, zs)[1].loglik, rtol=1e-12)
+    assert not np.allclose(out[0], out[1])
+
+
+def test_jit_equals_eager_step_by_step():
+    zs = np.asarray(data(5, 6))
+    zs[3] = np.nan
+    models = [make_model(CV, Q1), make_model(DAMPED, Q2)]
+    imm = F.build_imm(models, TRANS, filter="ekf", initial_probs=MU0)
+    _, jitted = jax.jit(lambda z: F.run(imm, z))(jnp.asarray(zs))
+    state = imm.init(imm.params)
+    for k in range(zs.shape[0]):
+        inputs = StepInputs(t=jnp.asarray(k + 1, jnp.int32))
+        state = imm.predict(imm.params, state, inputs)
+        state, info = imm.update(imm.params, state, jnp.asarray(zs[k]), inputs)
+        np.testing.assert_allclose(info.mean, jitted.mean[k], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(info.cov, jitted.cov[k], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(info.loglik, jitted.loglik[k], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(info.extra["model_probs"], jitted.extra["model_probs"][k], rtol=1e-12)
+    assert int(jitted.n_components[0]) == 2 and jitted.reduction is None
+    assert not np.any(np.asarray(jitted.flags.any()))
 
 
 def test_bad_input_raises():

@@ -387,7 +387,7 @@ def test_gmrcm_large_covariance_passes_through_and_state_min_rule():
 
 def test_gmrcm_search_and_config_protocol():
     gm = case("bimodal")
-    out, state, info = GMRCM(alpha=0.01).step(gm, init_state(K))
+    out, state, info = GMRCM(alpha=0.01).reduce(gm, init_state(K))
     assert 0.5 <= float(info.aux["lambda"]) <= 3.0
     assert float(info.cost) <= float(info.aux["eise_grid"]) * (1 + NEWTON_TOL)
     lam = info.aux["lambda"]

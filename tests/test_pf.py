@@ -10,6 +10,7 @@ import pytest
 from gmjax import filters as F
 from gmjax import mixture as gmm
 from gmjax.filters import pf as pfm
+from gmjax.filters.base import StepInputs
 from gmjax.mixture import GaussianMixture as GM
 from gmjax.models import StateSpaceModel
 
@@ -113,8 +114,8 @@ def test_pf_mean_converges_to_kf(name):
 
     @jax.jit
     def one(key):
-        states, infos = F.run(flt, zs, init_state=flt.init(key=key))
-        return jax.vmap(flt.moments)(states)[0], infos.loglik
+        _, infos = F.run(flt, zs, key=key)
+        return infos.mean, infos.loglik
 
     means, lls = jax.vmap(one)(jax.random.split(jax.random.key(2), R_))
     means = np.asarray(means)
@@ -142,9 +143,10 @@ def test_regularisation_kernel_statistics():
         GM.create([1.0], [np.zeros(2)], [np.diag([1.0, 4.0])]),
     )
     flt = F.build_pf(flat, N, regularized=True, measurement_noise=lambda w: jnp.zeros(()))
-    st = flt.init(key=jax.random.key(3))
-    new, info = jax.jit(flt.update)(st, jnp.array([0.0]), 1)
-    assert bool(info.resampled)
+    k_init, k_upd = jax.random.split(jax.random.key(3))
+    st = flt.init(flt.params, key=k_init)
+    new, info = jax.jit(flt.update)(flt.params, st, jnp.array([0.0]), StepInputs(t=1), key=k_upd)
+    assert bool(info.extra["resampled"])
     x = np.asarray(new.particles)
     x0 = np.asarray(st.particles)
     h = (4.0 / (d + 2)) ** (1 / (d + 4)) * N ** (-1 / (d + 4))
@@ -168,8 +170,8 @@ def test_gm_and_callable_noises_agree():
         measurement_noise=lambda w: gmm.logpdf(r_gm, w),
     )
     key = jax.random.key(4)
-    sa, ia = jax.jit(lambda k: F.run(a, zs, init_state=a.init(key=k)))(key)
-    sb, ib = jax.jit(lambda k: F.run(b, zs, init_state=b.init(key=k)))(key)
+    sa, ia = jax.jit(lambda k: F.run(a, zs, key=k))(key)
+    sb, ib = jax.jit(lambda k: F.run(b, zs, key=k))(key)
     np.testing.assert_allclose(np.asarray(sa.particles), np.asarray(sb.particles), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(ia.loglik), np.asarray(ib.loglik), rtol=1e-12)
     # padded measurement-noise slots leave the likelihood unchanged
@@ -191,8 +193,9 @@ def test_true_noise_sampler_is_used():
         return scale * jax.random.gamma(key, shape_k, shape + (2,))
 
     flt = F.build_pf(m, 50000, process_noise=gamma_noise)
-    st = flt.init(key=jax.random.key(5))
-    moved = jax.jit(flt.predict)(st, 1)
+    k_init, k_pred = jax.random.split(jax.random.key(5))
+    st = flt.init(flt.params, key=k_init)
+    moved = jax.jit(flt.predict)(flt.params, st, StepInputs(t=1), key=k_pred)
     diff = np.asarray(moved.particles) - np.asarray(st.particles) @ A.T
     se = np.sqrt(shape_k) * scale / np.sqrt(50000)
     assert np.all(np.abs(diff.mean(0) - shape_k * scale) < 5 * se)
@@ -207,8 +210,9 @@ def test_timed_per_draw_sampler():
         return t + jax.random.normal(key, (2,))
 
     flt = F.build_pf(m, 20000, process_noise=pfm.TimedSampler(simulator))
-    st = flt.init(key=jax.random.key(8))
-    moved = jax.jit(flt.predict)(st, 3)
+    k_init, k_pred = jax.random.split(jax.random.key(8))
+    st = flt.init(flt.params, key=k_init)
+    moved = jax.jit(flt.predict)(flt.params, st, StepInputs(t=3), key=k_pred)
     v = np.asarray(moved.particles) - np.asarray(st.particles) @ A.T
     se = 1.0 / np.sqrt(20000)
     assert np.all(np.abs(v.mean(0) - 3.0) < 5 * se)
@@ -218,20 +222,23 @@ def test_timed_per_draw_sampler():
 
 def test_nan_measurement_and_degeneracy_float32():
     flt = F.build_pf(model(jnp.float32), 500)
-    st = flt.init(key=jax.random.key(6))
+    k_init, k_pred, k_upd = jax.random.split(jax.random.key(6), 3)
+    one = StepInputs(t=1)
+    st = flt.init(flt.params, key=k_init)
     assert st.particles.dtype == jnp.float32
-    st = jax.jit(flt.predict)(st, 1)
+    st = jax.jit(flt.predict)(flt.params, st, one, key=k_pred)
     update = jax.jit(flt.update)
-    ok, ok_info = update(st, jnp.array([0.5], jnp.float32), 1)
+    ok, ok_info = update(flt.params, st, jnp.array([0.5], jnp.float32), one, key=k_upd)
     assert ok.particles.dtype == jnp.float32 and np.isfinite(float(ok_info.loglik))
-    new, info = update(st, jnp.array([jnp.nan], jnp.float32), 1)
+    assert ok_info.mean.dtype == jnp.float32 and ok_info.cov.dtype == jnp.float32
+    new, info = update(flt.params, st, jnp.array([jnp.nan], jnp.float32), one, key=k_upd)
     np.testing.assert_array_equal(np.asarray(new.particles), np.asarray(st.particles))
     np.testing.assert_array_equal(np.asarray(new.log_weights), np.asarray(st.log_weights))
-    assert float(info.loglik) == 0.0 and not bool(info.resampled)
+    assert float(info.loglik) == 0.0 and not bool(info.extra["resampled"])
     # every particle impossible: flagged, weights kept, no NaN
     dead = F.build_pf(model(jnp.float32), 500, measurement_noise=lambda w: jnp.full((), -jnp.inf))
-    new, info = jax.jit(dead.update)(st, jnp.array([0.0], jnp.float32), 1)
-    assert bool(info.degenerate)
+    new, info = jax.jit(dead.update)(dead.params, st, jnp.array([0.0], jnp.float32), one, key=k_upd)
+    assert bool(info.flags.degenerate)
     assert np.all(np.isfinite(np.asarray(new.log_weights)))
     assert np.all(np.isfinite(np.asarray(new.particles)))
 
@@ -240,11 +247,13 @@ def test_jit_eager_vmap_loop():
     zs = data(2, 4)
     flt = F.build_pf(model(), 200, resampling="residual")
     keys = jax.random.split(jax.random.key(7), 3)
-    go = lambda k: F.run(flt, zs, init_state=flt.init(key=k))  # noqa: E731
+    go = lambda k: F.run(flt, zs, key=k)  # noqa: E731
     eager = go(keys[0])
     jitted = jax.jit(go)(keys[0])  # compiled once, reused in the loop below
     batched = jax.jit(jax.vmap(go))(keys)
     np.testing.assert_allclose(np.asarray(eager[0].particles), np.asarray(jitted[0].particles), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(eager[1].loglik), np.asarray(jitted[1].loglik), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(eager[1].mean), np.asarray(jitted[1].mean), rtol=1e-10, atol=1e-10)
     jgo = jax.jit(go)
     for i in range(3):
         one = jgo(keys[i])
@@ -266,3 +275,99 @@ def test_bad_input_raises():
         F.build_pf(m, 10, measurement_noise="gaussian")
     with pytest.raises(ValueError, match="bandwidth"):
         F.build_pf(m, 10, bandwidth_scale=0.0)
+    with pytest.raises(ValueError, match="process_noise"):
+        F.build_pf(m, 10, process_noise=GM.create([1.0], [[0.0]], [[[1.0]]]))
+    with pytest.raises(ValueError, match="measurement_noise"):
+        F.build_pf(m, 10, measurement_noise=m.process_noise)
+    flt = F.build_pf(m, 10)
+    with pytest.raises(ValueError, match="key: the particle filter needs a PRNG key"):
+        flt.init(flt.params)
+    with pytest.raises(ValueError, match="key: the particle filter needs a PRNG key"):
+        F.run(flt, data(0, 2))
+    st = flt.init(flt.params, key=jax.random.key(0))
+    with pytest.raises(ValueError, match="key"):
+        flt.predict(flt.params, st, StepInputs(t=1))
+    with pytest.raises(ValueError, match="key"):
+        flt.update(flt.params, st, jnp.array([0.0]), StepInputs(t=1))
+    with pytest.raises(ValueError, match="prior"):
+        flt.init(flt.params, (jnp.zeros(2), jnp.eye(2)), key=jax.random.key(0))
+
+
+def test_step_info_contract():
+    """StepInfo: mean/cov are the weighted moments of the posterior particles, n_components = 1
+    (int32, no mixture), the ESS / resampled diagnostics sit in ``extra``; a GM noise override lives in params."""
+    zs = data(3, 4)
+    q2 = GM.create([1.0], [np.zeros(2)], [2.0 * Q])
+    flt = F.build_pf(model(), 100, ess_threshold=0.5, process_noise=q2)
+    assert flt.params.model.process_noise is q2
+    states, infos = jax.jit(lambda k: F.run(flt, zs, key=k))(jax.random.key(9))
+    mean, cov = jax.vmap(pfm.pf_moments)(states)
+    np.testing.assert_allclose(np.asarray(infos.mean), np.asarray(mean), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(infos.cov), np.asarray(cov), rtol=1e-12, atol=1e-12)
+    assert infos.n_components.dtype == jnp.int32 and np.all(np.asarray(infos.n_components) == 1)
+    assert set(infos.extra) == {"ess", "resampled"}
+    ess = np.asarray(infos.extra["ess"])
+    assert np.all((ess >= 1.0 - 1e-9) & (ess <= 100 + 1e-9))
+    np.testing.assert_array_equal(np.asarray(infos.extra["resampled"]), ess < 50)
+    assert infos.reduction is None
+    assert not np.any(np.asarray(infos.flags.any()))
+
+
+def test_params_are_read_at_each_call():
+    """Changing ``params`` (not the closure) changes the run: ess_threshold = 0 never resamples."""
+    zs = data(4, 5)
+    flt = F.build_pf(model(), 200)
+    go = jax.jit(lambda p, k: F.run(flt, zs, key=k, params=p))
+    key = jax.random.key(10)
+    _, every = go(flt.params, key)
+    _, never = go(flt.params._replace(ess_threshold=jnp.asarray(0.0)), key)
+    assert np.all(np.asarray(every.extra["resampled"]))
+    assert not np.any(np.asarray(never.extra["resampled"]))
+    assert go._cache_size() == 1  # a new threshold value does not recompile
+
+
+def _stack(*trees):
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *trees)
+
+
+def test_vmap_over_params_sets():
+    """With a fixed key a PF's loglik is piecewise in params (resampling indices jump), so no
+    gradient check over a run; ``jax.vmap`` over two params sets (process-noise covariance and
+    ESS threshold) equals a Python loop over them."""
+    zs = data(5, 6)
+    flt = F.build_pf(model(), 150)
+    p1 = flt.params
+    q2 = GM.create([1.0], [np.zeros(2)], [3.0 * Q])
+    p2 = p1._replace(model=p1.model._replace(process_noise=q2), ess_threshold=jnp.asarray(0.5))
+    key = jax.random.key(11)
+    go = jax.jit(lambda p: F.run(flt, zs, key=key, params=p))
+    batched_states, batched_infos = jax.jit(jax.vmap(lambda p: F.run(flt, zs, key=key, params=p)))(_stack(p1, p2))
+    for i, p in enumerate((p1, p2)):
+        states, infos = go(p)
+        np.testing.assert_allclose(np.asarray(batched_states.particles[i]), np.asarray(states.particles),
+                                   rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(batched_infos.loglik[i]), np.asarray(infos.loglik), rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(batched_infos.mean[i]), np.asarray(infos.mean), rtol=1e-10, atol=1e-10)
+    assert not np.allclose(np.asarray(batched_infos.loglik[0]), np.asarray(batched_infos.loglik[1]))
+
+
+def test_one_step_loglik_gradient_wrt_process_noise():
+    """One predict + update with a fixed key is smooth in Q (the draws are x + chol(Q) eps and
+    the loglik is taken before resampling): ``jax.grad`` through params matches a central finite
+    difference (float64)."""
+    zs = data(6, 1)
+    flt = F.build_pf(model(), 300)
+    key = jax.random.key(12)
+
+    def loglik(q01):
+        covs = flt.params.model.process_noise.covs.at[0, 0, 1].set(q01).at[0, 1, 0].set(q01)
+        p = flt.params._replace(model=flt.params.model._replace(
+            process_noise=flt.params.model.process_noise._replace(covs=covs)))
+        return F.run(flt, zs, key=key, params=p)[1].loglik.sum()
+
+    q01, eps = 0.02, 1e-5
+    g = float(jax.jit(jax.grad(loglik))(q01))
+    values = jax.jit(jax.vmap(loglik))(jnp.array([q01 + eps, q01 - eps]))
+    fd = float(values[0] - values[1]) / (2 * eps)
+    assert np.isfinite(g)
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-8)

@@ -5,7 +5,9 @@ and the analytic circle; the simulator's noise and prior against the stated mixt
 errors, a Kolmogorov–Smirnov test); the manoeuvre timing; ``build_imm_gsf`` against a plain NumPy
 enumeration of the exact jump-Markov posterior (bank of Kalman filters over model sequences and noise
 components), against ``build_gsf`` with one model and against ``build_imm`` with one-component
-noises and no model switching; jit == eager, vmap == loop, float32, extra padded slots.
+noises and no model switching; jit == eager, vmap == loop, float32, extra padded slots; the
+gradient of the summed log-likelihood with respect to a process-noise entry of ``filter.params``
+against central finite differences.
 """
 
 import itertools
@@ -18,8 +20,9 @@ import scipy.linalg
 import scipy.stats
 
 from gmjax import filters as F
+from gmjax.filters.base import StepInputs
 from gmjax.filters.gsf import build_gsf
-from gmjax.filters.imm import build_imm_gsf
+from gmjax.filters.imm import IMMGSFParams, build_imm_gsf
 from gmjax.mixture import GaussianMixture as GM
 from gmjax.models import StateSpaceModel, seed003, simulate
 from gmjax.reduction import GMRCM, PruneTop, Runnalls
@@ -176,16 +179,16 @@ def test_imm_gsf_equals_exact_jump_markov_posterior_and_ignores_padding():
         filt = build_imm_gsf(models, TRANS, local="ekf", reducer=None, capacity=capacity,
                              initial_probs=MU0)
         _, infos = jax.jit(lambda zs, f=filt: F.run(f, zs))(jnp.asarray(ZS))
-        assert not np.any(np.asarray(infos.overflow))
+        assert not np.any(np.asarray(infos.flags.overflow))
         for k, (mean, cov, probs, loglik) in enumerate(ref):
             np.testing.assert_allclose(infos.mean[k], mean, rtol=1e-9, atol=1e-10)
             np.testing.assert_allclose(infos.cov[k], cov, rtol=1e-9, atol=1e-10)
-            np.testing.assert_allclose(infos.model_probs[k], probs, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(infos.extra["model_probs"][k], probs, rtol=1e-9, atol=1e-12)
             np.testing.assert_allclose(infos.loglik[k], loglik, rtol=1e-9)
         results.append(infos)
     assert int(results[0].n_components[-1]) == 256
-    for a, b in zip(jax.tree_util.tree_leaves((results[0].mean, results[0].cov, results[0].model_probs)),
-                    jax.tree_util.tree_leaves((results[1].mean, results[1].cov, results[1].model_probs))):
+    leaves = [jax.tree_util.tree_leaves((r.mean, r.cov, r.extra["model_probs"])) for r in results]
+    for a, b in zip(*leaves):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
@@ -200,11 +203,8 @@ def test_one_model_imm_gsf_is_the_gsf(reducer):
     _, zs, _ = simulate(sc._replace(n_steps=12), jax.random.key(5))
     imm = build_imm_gsf([model], [[1.0]], reducer=reducer, capacity=4)
     gsf = build_gsf(model, "ekf", reducer, capacity=4, track_ise=False)
-    run = jax.jit(lambda zs, f: F.run(f, zs, init_state=f.init(key=jax.random.key(9))),
-                  static_argnums=1)
-    _, a = run(zs, imm)
-    s_gsf = gsf.init(key=jax.random.split(jax.random.key(9), 1)[0])
-    _, b = jax.jit(lambda zs: F.run(gsf, zs, init_state=s_gsf))(zs)
+    _, a = jax.jit(lambda zs: F.run(imm, zs, key=jax.random.key(9)))(zs)
+    _, b = jax.jit(lambda zs: F.run(gsf, zs, key=jax.random.key(9)))(zs)
     np.testing.assert_allclose(a.mean, b.mean, rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(a.cov, b.cov, rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(a.loglik, b.loglik, rtol=1e-12)
@@ -223,9 +223,9 @@ def test_imm_gsf_with_gaussian_noises_and_no_switching_is_the_imm():
     a_filt = build_imm_gsf(models, eye, local="ekf", capacity=1, initial_probs=MU0)
     b_filt = F.build_imm(models, eye, filter="kf", initial_probs=MU0)
     _, a = jax.jit(lambda zs: F.run(a_filt, zs))(zs)
-    states, b = jax.jit(lambda zs: F.run(b_filt, zs))(zs)
-    mean_b, cov_b = jax.vmap(b_filt.moments)(states)
-    np.testing.assert_allclose(a.model_probs, b.model_probs, rtol=1e-10, atol=1e-13)
+    _, b = jax.jit(lambda zs: F.run(b_filt, zs))(zs)
+    mean_b, cov_b = b.mean, b.cov
+    np.testing.assert_allclose(a.extra["model_probs"], b.extra["model_probs"], rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(a.loglik, b.loglik, rtol=1e-10)
     np.testing.assert_allclose(a.mean, mean_b, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(a.cov, cov_b, rtol=1e-10, atol=1e-12)
@@ -248,25 +248,75 @@ def test_imm_gsf_jit_eager_vmap_loop_float32_and_missing_measurement():
     for i in range(3):  # vmap == Python loop over runs
         single = single_run(zs[i])
         np.testing.assert_allclose(batched.mean[i], single.mean, rtol=1e-12, atol=1e-9)
-        np.testing.assert_allclose(batched.model_probs[i], single.model_probs, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(batched.extra["model_probs"][i], single.extra["model_probs"],
+                                   rtol=1e-12, atol=1e-14)
     # eager, step by step (no jit) == jit
-    state = filt.init()
+    state = filt.init(filt.params)
     for k in range(2):
-        state = filt.predict(state, k + 1)
+        inputs = StepInputs(t=jnp.asarray(k + 1, jnp.int32))
+        state = filt.predict(filt.params, state, inputs)
         prior_probs = np.exp(np.asarray(state.log_probs))
-        state, info = filt.update(state, zs[0, k], k + 1)
+        state, info = filt.update(filt.params, state, zs[0, k], inputs)
         np.testing.assert_allclose(info.mean, batched.mean[0, k], rtol=1e-10, atol=1e-8)
-        np.testing.assert_allclose(info.model_probs, batched.model_probs[0, k], rtol=1e-10, atol=1e-13)
+        np.testing.assert_allclose(info.extra["model_probs"], batched.extra["model_probs"][0, k],
+                                   rtol=1e-10, atol=1e-13)
     # the NaN step is predict-only: log-likelihood 0, model probabilities = the predicted ones
     assert float(info.loglik) == 0.0
-    np.testing.assert_allclose(info.model_probs, prior_probs, rtol=1e-12)
+    np.testing.assert_allclose(info.extra["model_probs"], prior_probs, rtol=1e-12)
     assert np.all(np.isfinite(np.asarray(batched.mean)))
     # float32 follows float64
     f32 = _seed003_filter(jnp.float32)
     out32 = jax.jit(lambda z: F.run(f32, z)[1])(zs[0].astype(jnp.float32))
     assert out32.mean.dtype == jnp.float32
     np.testing.assert_allclose(out32.mean, batched.mean[0], rtol=2e-3, atol=0.05)
-    np.testing.assert_allclose(out32.model_probs, batched.model_probs[0], atol=2e-3)
+    np.testing.assert_allclose(out32.extra["model_probs"], batched.extra["model_probs"][0], atol=2e-3)
+
+
+def test_imm_gsf_grad_wrt_process_noise_matches_finite_difference():
+    models = [_linear(F1, H1), _linear(F2, H2)]
+    filt = build_imm_gsf(models, TRANS, local="ekf", reducer=Runnalls(num_out=8, capacity=8),
+                         capacity=8, initial_probs=MU0)
+    assert isinstance(filt.params, IMMGSFParams)
+
+    def with_q(q):  # process-noise covariance entry (component 1, [1, 1]) of model 2
+        p = filt.params
+        noise = p.models[1].process_noise
+        m1 = p.models[1]._replace(process_noise=noise._replace(covs=noise.covs.at[1, 1, 1].set(q)))
+        return p._replace(models=(p.models[0], m1))
+
+    def total(q):
+        return jnp.sum(F.run(filt, jnp.asarray(ZS), params=with_q(q))[1].loglik)
+
+    q0 = float(filt.params.models[1].process_noise.covs[1, 1, 1])
+    g = jax.jit(jax.grad(total))(q0)
+    eps = 1e-5
+    fd = (total(q0 + eps) - total(q0 - eps)) / (2 * eps)
+    assert np.isfinite(float(g))
+    np.testing.assert_allclose(float(g), float(fd), rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_imm_gsf_jit_equals_eager_with_a_stateful_reducer_and_a_key():
+    sc = seed003.tracking("step")._replace(n_steps=3)
+    _, zs, ts = simulate(sc, jax.random.key(11))
+    gm_filt = build_imm_gsf(seed003.imm_models(), seed003.TRANSITION, local="ekf",
+                            reducer=GMRCM(alpha=0.3, capacity=4, grid_size=5, newton_steps=0), capacity=4)
+    key = jax.random.key(4)
+    _, jitted = jax.jit(lambda z, k: F.run(gm_filt, z, ts, key=k))(zs, key)
+    k_init, k_steps = jax.random.split(key)  # the key stream of F.run
+    state = gm_filt.init(gm_filt.params, key=k_init)
+    for k, k_step in enumerate(jax.random.split(k_steps, 3)):
+        k_pred, k_upd = jax.random.split(k_step)
+        inputs = StepInputs(t=ts[k])
+        state = gm_filt.predict(gm_filt.params, state, inputs, key=k_pred)
+        state, info = gm_filt.update(gm_filt.params, state, zs[k], inputs, key=k_upd)
+        np.testing.assert_allclose(info.mean, jitted.mean[k], rtol=1e-10, atol=1e-8)
+        np.testing.assert_allclose(info.loglik, jitted.loglik[k], rtol=1e-10)
+        np.testing.assert_array_equal(state.modes.reducer_state.low_count.shape, (2, 4))
+    assert jitted.extra["mode_reduction"].cost.shape == (3, 2)
+    np.testing.assert_allclose(jitted.reduction.cost,
+                               (jitted.extra["model_probs"] * jitted.extra["mode_reduction"].cost).sum(1),
+                               rtol=1e-12)
 
 
 def test_imm_gsf_bad_input():
@@ -281,3 +331,6 @@ def test_imm_gsf_bad_input():
         build_imm_gsf(models, seed003.TRANSITION, capacity=0)
     with pytest.raises(ValueError, match="models"):
         build_imm_gsf([], np.zeros((0, 0)))
+    two_q = GM.create([0.5, 0.5], [np.zeros(3), np.ones(3)], [np.eye(3), np.eye(3)])
+    with pytest.raises(ValueError, match="models: all models must have the same numbers"):
+        build_imm_gsf([models[0], models[1]._replace(process_noise=two_q)], seed003.TRANSITION)

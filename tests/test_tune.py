@@ -1,4 +1,5 @@
-"""Relaxations (soft gates, soft memberships, soft split trigger) and the tuning loop (gmjax.tune)."""
+"""Relaxed reducers (mode / temperature of PruneThreshold, PruneCensored, PCM), the relaxation
+primitives (gmjax.reduction.relax) and the tuning loop (gmjax.tune)."""
 
 import math
 
@@ -13,7 +14,8 @@ from gmjax.filters import build_kf
 from gmjax.filters.gsf import build_gsf
 from gmjax.mixture import GaussianMixture, pad
 from gmjax.models import Scenario, StateSpaceModel, seed000
-from gmjax.reduction import pcm, prune_censored, prune_threshold
+from gmjax.reduction import PCM, PruneCensored, PruneThreshold, pcm, prune_censored, prune_threshold
+from gmjax.reduction import relax as R
 
 K = 14  # one capacity throughout so compiled kernels are shared
 
@@ -47,23 +49,25 @@ def test_soft_step_modes_and_zero_temperature():
     x = jnp.asarray([-1.0, -1e-3, 0.0, 2e-3, 3.0])
     hard = np.array([0, 0, 1, 1, 1.0])
     strict = np.array([0, 0, 0, 1, 1.0])
-    np.testing.assert_array_equal(T.soft_step(x, 0.0), hard)
-    np.testing.assert_array_equal(T.soft_step(x, 0.0, strict=True), strict)
-    np.testing.assert_array_equal(T.soft_step(x, 0.5, mode="hard"), hard)
-    np.testing.assert_allclose(T.soft_step(x, 0.5), 1 / (1 + np.exp(-np.asarray(x) / 0.5)), rtol=1e-14)
-    np.testing.assert_array_equal(T.soft_step(x, 0.5, mode="straight_through"), hard)
+    np.testing.assert_array_equal(R.soft_step(x, 0.0), hard)
+    np.testing.assert_array_equal(R.soft_step(x, 0.0, strict=True), strict)
+    np.testing.assert_array_equal(R.soft_step(x, 0.5, mode="hard"), hard)
+    np.testing.assert_allclose(R.soft_step(x, 0.5), 1 / (1 + np.exp(-np.asarray(x) / 0.5)), rtol=1e-14)
+    np.testing.assert_array_equal(R.soft_step(x, 0.5, mode="straight_through"), hard)
     # straight-through: hard value, sigmoid gradient; all gradients finite at T = 0
-    g_st = jax.grad(lambda t: jnp.sum(T.soft_step(x - t, 0.5, mode="straight_through")))(0.1)
-    g_soft = jax.grad(lambda t: jnp.sum(T.soft_step(x - t, 0.5)))(0.1)
+    g_st = jax.grad(lambda t: jnp.sum(R.soft_step(x - t, 0.5, mode="straight_through")))(0.1)
+    g_soft = jax.grad(lambda t: jnp.sum(R.soft_step(x - t, 0.5)))(0.1)
     assert g_st == g_soft and g_soft < 0
-    g0 = jax.grad(lambda tau: jnp.sum(T.soft_step(x, tau)))(0.0)
+    g0 = jax.grad(lambda tau: jnp.sum(R.soft_step(x, tau)))(0.0)
     assert np.isfinite(g0)
     with pytest.raises(ValueError, match="mode"):
-        T.soft_step(x, 0.1, mode="fuzzy")
+        R.soft_step(x, 0.1, mode="fuzzy")
 
 
 def test_soft_split_gate():
     from gmjax.filters.agsf import hard_gate
+
+    assert T.soft_split_gate is R.soft_split_gate  # kept importable from gmjax.tune
 
     psi = jnp.asarray([0.1, 0.5, 0.9])
     hard = T.soft_split_gate(0.0)(psi, 0.5)
@@ -93,11 +97,14 @@ def test_soft_pruning_at_zero_temperature_is_hard(dtype):
         for rho, nu in ((0.9544, None), (0.8, 6), (0.3, None)):
             a, ia = prune_censored(gm, rho, nu)
             for mode in ("soft", "hard", "straight_through"):
-                b, ib = T.soft_prune_censored(gm, rho, nu, temperature=0.0 if mode == "soft" else 0.05, mode=mode)
+                red = PruneCensored(rho, nu, temperature=0.0 if mode == "soft" else 0.05, mode=mode)
+                b, ib = red(gm)
                 assert_same(a, b)
                 assert jnp.array_equal(ia.labels, ib.labels) and ia.pruned_mass == ib.pruned_mass
+                b2, _ = prune_censored(gm, rho, nu, temperature=red.temperature, mode=mode)  # functional form
+                assert_same(a, b2)
         a, ia = prune_threshold(gm, 0.05)
-        b, ib = T.soft_prune_threshold(gm, 0.05, temperature=0.0)
+        b, _, ib = PruneThreshold(0.05, temperature=0.0, mode="soft").reduce(gm, None)
         assert_same(a, b)
         assert jnp.array_equal(ia.labels, ib.labels)
 
@@ -112,7 +119,7 @@ def test_censored_gates_match_the_order_statistic_rule():
         gamma = [asc[n:].sum() / asc.sum() for n in range(I)]  # share of the I - n largest (eq 20)
         n_max = max(n for n in range(I) if gamma[n] >= rho)  # eq 21 (0-based n)
         N = I - n_max  # eq 22 without a cap
-        g = np.asarray(T.censored_gates(gm, rho, 0.0))
+        g = np.asarray(R.censored_gates(gm, rho, 0.0))
         assert g.sum() == N
         kept = np.asarray(gm.weights)[g > 0]
         assert kept.min() >= np.sort(w)[::-1][N - 1]
@@ -122,7 +129,7 @@ def test_soft_pruning_gradients_match_finite_differences():
     gm = random_gm(1)
 
     def f(theta):
-        out, info = T.soft_prune_censored(gm, theta[0], 8, temperature=0.03)
+        out, info = PruneCensored(theta[0], 8, temperature=0.03, mode="soft")(gm)
         return jnp.sum(out.weights * out.means[:, 0]) + info.aux["n_expected"]
 
     theta = jnp.asarray([0.9])
@@ -131,7 +138,7 @@ def test_soft_pruning_gradients_match_finite_differences():
     assert abs(float(g[0])) > 0
 
     def h(th):
-        out, _ = T.soft_prune_threshold(gm, th[0], temperature=0.01)
+        out, _ = prune_threshold(gm, th[0], temperature=0.01, mode="soft")
         return jnp.sum(out.weights * out.means[:, 0] ** 2)
 
     th = jnp.asarray([0.06])
@@ -143,7 +150,7 @@ def test_straight_through_pruning():
     a, _ = prune_censored(gm, 0.9)
 
     def f(rho, mode):
-        out, _ = T.soft_prune_censored(gm, rho, temperature=0.05, mode=mode)
+        out, _ = PruneCensored(rho, temperature=0.05, mode=mode)(gm)
         return out
 
     b = f(0.9, "straight_through")
@@ -163,18 +170,19 @@ def test_soft_pcm_at_zero_temperature_is_pcm(dtype):
             a, ia = pcm(gm, rho=rho, lam=lam, max_components=8)
             modes = (("soft", (0.0, 0.0)), ("hard", (0.05, 0.25)), ("straight_through", (0.05, 0.25)))
             for mode, temps in modes[: 3 if dtype == jnp.float64 else 1]:
-                b, ib = T.soft_pcm(gm, rho=rho, lam=lam, max_components=8, temperature=temps[0],
-                                   lam_temperature=temps[1], mode=mode)
+                b, ib = PCM(rho=rho, lam=lam, max_components=8, gate_temperature=temps[0],
+                            temperature=temps[1], grid_size=9, mode=mode)(gm)
                 assert_same(a, b)
                 assert jnp.array_equal(ia.labels, ib.labels)
                 assert ia.cost == ib.cost and ia.pruned_mass == ib.pruned_mass
-                assert ib.aux["n_expected"] == ia.aux["n_clusters"]
+                # the relaxed modes report the expected output size (hard mode: PCM's own aux)
+                assert ib.aux["n_expected" if mode != "hard" else "n_clusters"] == ia.aux["n_clusters"]
 
 
 def test_soft_membership_is_the_search_relaxation():
     gm = random_gm(5)
     grid = jnp.linspace(1.0, 3.0, 9)
-    A, pi, grid_labels, labels = T.soft_membership(gm, 2.1, grid, 0.25)
+    A, pi, grid_labels, labels = R.soft_membership(gm, 2.1, grid, 0.25)
     live = np.asarray(gm.mask)
     np.testing.assert_allclose(np.asarray(A).sum(1)[live], 1.0, rtol=1e-12)
     np.testing.assert_array_equal(np.asarray(A)[~live], 0.0)
@@ -187,7 +195,7 @@ def test_soft_membership_is_the_search_relaxation():
             if c >= 0:
                 A_ref[m, c] += pi[g]
     np.testing.assert_allclose(A, A_ref, rtol=1e-12)
-    A0, _, _, labels0 = T.soft_membership(gm, 2.1, grid, 0.0)
+    A0, _, _, labels0 = R.soft_membership(gm, 2.1, grid, 0.0)
     onehot = (np.asarray(labels0)[:, None] == np.arange(K)[None]).astype(float)
     np.testing.assert_array_equal(A0, onehot)
 
@@ -196,8 +204,8 @@ def _soft_pcm_objective():
     gm = random_gm(3)
 
     def f(theta):
-        out, info = T.soft_pcm(gm, rho=theta[0], lam=theta[1], max_components=9, temperature=0.02,
-                               lam_temperature=0.25)
+        out, info = pcm(gm, rho=theta[0], lam=theta[1], max_components=9, gate_temperature=0.02,
+                        temperature=0.25, grid_size=9, mode="soft")
         return (jnp.sum(out.weights * out.means[:, 0] ** 2) + jnp.sum(out.weights * out.covs[:, 0, 0])
                 + 10 * info.cost + 0.1 * info.aux["n_expected"])
 
@@ -224,17 +232,18 @@ def test_soft_pcm_gradient_finite_with_negligible_weights():
     gm = GaussianMixture.create(w, [[0.0], [1.0], [2.5], [6.0], [-9.0], [14.0]], np.ones((6, 1, 1)), capacity=K)
 
     def f(theta):
-        out, info = T.soft_pcm(gm, rho=theta[0], lam=theta[1], temperature=0.02, lam_temperature=0.25)
+        out, info = pcm(gm, rho=theta[0], lam=theta[1], gate_temperature=0.02, temperature=0.25, grid_size=9,
+                        mode="soft")
         return jnp.sum(out.weights * out.means[:, 0]) + jnp.sum(out.covs) + info.cost
 
     g = jax.jacfwd(f)(jnp.asarray([0.99, 2.0]))
     assert np.all(np.isfinite(np.asarray(g)))
-    out, _ = T.soft_pcm(gm, rho=0.99, lam=2.0, temperature=0.02, lam_temperature=0.25)
+    out, _ = pcm(gm, rho=0.99, lam=2.0, gate_temperature=0.02, temperature=0.25, grid_size=9, mode="soft")
     assert float(jnp.min(jnp.where(out.mask, out.weights, 1.0))) > 1e-40
 
 
 def test_soft_pcm_jit_vmap_padding():
-    cfg = T.SoftPCM(rho=0.95, lam=1.8, temperature=0.02, lam_temperature=0.25, max_components=9)
+    cfg = PCM(rho=0.95, lam=1.8, gate_temperature=0.02, temperature=0.25, max_components=9, grid_size=9, mode="soft")
     gms = [random_gm(20 + s) for s in range(3)]
     eager = [cfg(g) for g in gms]
     jitted = jax.jit(lambda c, g: c(g))(cfg, gms[0])
@@ -248,8 +257,8 @@ def test_soft_pcm_jit_vmap_padding():
         np.testing.assert_allclose(info.cost, binfo.cost[i], rtol=1e-12)
     # extra padded slots change nothing (capacity of the output fixed)
     padded = pad(gms[0], K + 4)
-    out_p, info_p = T.soft_pcm(padded, rho=0.95, lam=1.8, temperature=0.02, lam_temperature=0.25,
-                               max_components=9, capacity=9)
+    out_p, info_p = pcm(padded, rho=0.95, lam=1.8, gate_temperature=0.02, temperature=0.25, grid_size=9,
+                        max_components=9, capacity=9, mode="soft")
     out_0, info_0 = eager[0]
     n0 = int(out_0.mask.sum())
     assert int(out_p.mask.sum()) == n0
@@ -260,14 +269,39 @@ def test_soft_pcm_jit_vmap_padding():
 
 def test_soft_pcm_validation():
     gm = random_gm(0)
+    soft = dict(lam=2.0, mode="soft", grid_size=9)
     with pytest.raises(ValueError, match="rho"):
-        T.soft_pcm(gm, rho=1.5)
-    with pytest.raises(ValueError, match="lam_temperature"):
-        T.soft_pcm(gm, lam_temperature=-0.1)
+        pcm(gm, rho=1.5, **soft)
+    with pytest.raises(ValueError, match="temperature"):
+        pcm(gm, temperature=-0.1, **soft)
+    with pytest.raises(ValueError, match="gate_temperature"):
+        pcm(gm, gate_temperature=-0.1, **soft)
     with pytest.raises(ValueError, match="mode"):
-        T.soft_pcm(gm, mode="warm")
+        pcm(gm, lam=2.0, mode="warm")
     with pytest.raises(ValueError, match="lambda_range"):
-        T.soft_pcm(gm, lambda_range=(3.0, 1.0))
+        pcm(gm, lambda_range=(3.0, 1.0), **soft)
+    with pytest.raises(ValueError, match="lam"):  # the relaxed modes need a fixed λ
+        pcm(gm, mode="soft")
+    with pytest.raises(ValueError, match="temperature"):  # the search still needs τ > 0
+        pcm(gm, temperature=0.0)
+    pcm(gm, temperature=0.0, **soft)  # at a fixed λ, τ = 0 is the hard clustering
+    with pytest.raises(ValueError, match="mode"):
+        PruneThreshold(0.01, mode="fuzzy")(gm)
+    with pytest.raises(ValueError, match="temperature"):
+        PruneCensored(0.9, temperature=-1.0, mode="soft")(gm)
+
+
+def test_soft_pcm_without_pruning_and_moment_merge():
+    """prune=False and merge="moment" in the relaxed mode: zero temperatures equal the hard PCM."""
+    gm = random_gm(6)
+    for merge in ("ci", "moment"):
+        a, ia = pcm(gm, lam=1.9, prune=False, merge=merge)
+        b, ib = pcm(gm, lam=1.9, prune=False, merge=merge, temperature=0.0, mode="soft")
+        assert_same(a, b)
+        assert jnp.array_equal(ia.labels, ib.labels) and ia.cost == ib.cost
+        out, info = pcm(gm, lam=1.9, prune=False, merge=merge, temperature=0.25, mode="soft")
+        np.testing.assert_allclose(jnp.sum(out.weights), jnp.sum(gm.weights), rtol=1e-12)  # weight kept
+        assert float(info.aux["n_pruned_expected"]) == int(gm.mask.sum())
 
 
 # --------------------------------------------------------------------------- the tuning loop
@@ -369,8 +403,8 @@ def test_tune_validation():
 
 
 def _pcm_gsf(sc, p, mode="soft"):
-    red = T.SoftPCM(rho=p["rho"], lam=p["lam"], temperature=0.02, lam_temperature=0.25, max_components=8,
-                    capacity=8, mode=mode)
+    red = PCM(rho=p["rho"], lam=p["lam"], gate_temperature=0.02, temperature=0.25, grid_size=9, max_components=8,
+              capacity=8, mode=mode)
     return build_gsf(sc.model, "ekf", red, capacity=8, track_ise=False)
 
 
@@ -404,14 +438,86 @@ def test_pcm_gsf_reverse_mode_equals_forward_mode():
 @pytest.mark.slow
 def test_pcm_gsf_hard_mode_equals_pcm_gsf():
     """At zero temperature the relaxed PCM-GSF is the PCM-GSF with a fixed λ, run for run."""
-    from gmjax.reduction import PCM
-
     sc = seed000.jump_system(n_steps=10)
-    soft = build_gsf(sc.model, "ekf", T.SoftPCM(rho=0.95, lam=2.0, max_components=8, capacity=8), capacity=8,
-                     track_ise=False)
+    soft = build_gsf(sc.model, "ekf", PCM(rho=0.95, lam=2.0, max_components=8, capacity=8, gate_temperature=0.0,
+                                          temperature=0.0, grid_size=9, mode="soft"), capacity=8, track_ise=False)
     hard = build_gsf(sc.model, "ekf", PCM(rho=0.95, lam=2.0, max_components=8, capacity=8), capacity=8,
                      track_ise=False)
     a = T.study_scores(soft, sc, 4, jax.random.key(1))
     b = T.study_scores(hard, sc, 4, jax.random.key(1))
     np.testing.assert_array_equal(a.sq_error, b.sq_error)
     np.testing.assert_array_equal(a.cost, b.cost)
+
+
+# --------------------------------------------------------------------------- relaxed reducers inside filter.params
+
+
+def _pruned_gsf(n_steps=8):
+    """A GSF whose reducer is the relaxed censored pruning; ρ is a leaf of ``filter.params``."""
+    sc = seed000.jump_system(n_steps=n_steps)
+    red = PruneCensored(0.9, 8, temperature=0.03, mode="soft")
+    return sc, build_gsf(sc.model, "ekf", red, capacity=8, track_ise=False)
+
+
+def _with(filt, rho=None, q_var=None):
+    """``filt.params`` with the reducer's ``ρ`` and / or the first process-noise variance replaced."""
+    import dataclasses
+
+    p = filt.params
+    if rho is not None:
+        p = p._replace(reducer=dataclasses.replace(p.reducer, rho=rho))
+    if q_var is not None:
+        q = p.model.process_noise
+        p = p._replace(model=p.model._replace(process_noise=q._replace(covs=q.covs.at[0, 0, 0].set(q_var))))
+    return p
+
+
+def test_loglik_gradient_through_filter_params():
+    """d Σ loglik / d (ρ, Q[0]) through ``run``, both leaves of ``filter.params``: central differences."""
+    from gmjax.filters import run
+    from gmjax.filters.base import StepInputs
+    from gmjax.models import simulate
+
+    sc, filt = _pruned_gsf()
+    _, zs, ts = simulate(sc, jax.random.key(5))
+    q0 = float(filt.params.model.process_noise.covs[0, 0, 0])
+
+    @jax.jit
+    def f(theta):
+        _, infos = run(filt, zs, StepInputs(t=ts), params=_with(filt, rho=theta[0], q_var=theta[1]))
+        return jnp.sum(infos.loglik)
+
+    theta = jnp.asarray([0.9, q0])
+    g = jax.grad(f)(theta)
+    assert np.all(np.isfinite(np.asarray(g))) and abs(float(g[0])) > 0
+    np.testing.assert_allclose(g, central_fd(f, theta, 1e-6), rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.slow
+def test_study_scores_over_params_jit_equals_eager():
+    """``study_scores(..., params=)`` equals rebuilding the filter; jit equals eager."""
+    sc, filt = _pruned_gsf(n_steps=6)
+    p = _with(filt, rho=0.8)
+    red = PruneCensored(0.8, 8, temperature=0.03, mode="soft")
+    rebuilt = build_gsf(sc.model, "ekf", red, capacity=8, track_ise=False)
+    eager = T.study_scores(filt, sc, 2, jax.random.key(2), params=p)
+    jitted = jax.jit(lambda q: T.study_scores(filt, sc, 2, jax.random.key(2), params=q))(p)
+    ref = T.study_scores(rebuilt, sc, 2, jax.random.key(2))
+    for a, b, c in zip(eager, jitted, ref):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(a, c, rtol=1e-12, atol=1e-14)
+    assert eager.n_expected.shape == (2, 6)  # the gated pruning's expected survivors
+
+
+def test_tune_over_a_leaf_of_filter_params():
+    """``tune`` with a factory that replaces a leaf of ``filter.params``: the recorded gradient is the
+    study's gradient (common random numbers)."""
+    sc, filt = _pruned_gsf(n_steps=6)
+    factory = lambda p: filt._replace(params=_with(filt, rho=p["rho"]))  # noqa: E731
+    res = T.tune(factory, sc, {"rho": 0.9}, T.armse_loss(), optimizer=optax.sgd(1e-3), n_runs=2, steps=2,
+                 key=jax.random.key(4), bounds={"rho": (0.5, 0.9999)}, resample=False, progress=False)
+    assert res.history.ok.all() and res.history.params["rho"][0] == pytest.approx(0.9)
+    f = jax.jit(lambda v: T.armse_loss()(T.study_scores(factory({"rho": v[0]}), sc, 2, jax.random.key(4))))
+    g = jax.grad(f)(jnp.asarray([0.9]))
+    np.testing.assert_allclose(res.history.grads["rho"][0], g[0], rtol=1e-8)
+    assert np.isfinite(res.history.loss).all()

@@ -1,4 +1,4 @@
-"""Shared types and plumbing of the Gaussian local filters (DESIGN §3).
+"""Shared types and plumbing of the Gaussian local filters.
 
 Two layers:
 
@@ -7,15 +7,9 @@ Two layers:
   ``(mean, cov)`` pair. A Gaussian sum filter ``vmap``-s one local filter over mixture components
   × noise components; the GM noise components of the papers have non-zero means, so every
   local filter takes a noise mean.
-* **Model level** — a :class:`Filter` (``init(prior_gm)``, ``predict(state, t)``,
-  ``update(state, z, t)``) built from a :class:`gmjax.models.StateSpaceModel`, and :func:`run`,
-  a ``lax.scan`` over a measurement sequence.
-
-Time indexing of :func:`run`: the initial state describes ``x_0``; step ``k = 0 .. T-1`` predicts
-with ``f(., ts[k])`` to time ``ts[k]`` and then updates with ``zs[k]`` through ``h(., ts[k])``, so
-``states[k]`` is the posterior of ``x_{ts[k]}`` given ``zs[:k+1]``. The default ``ts`` is
-``1, 2, ..., T`` (matching ``x_k = f(x_{k-1}, k)`` in :class:`StateSpaceModel`). A measurement
-containing any NaN is skipped (predict-only step, log-likelihood 0).
+* **Model level** — :func:`from_local` wraps a local filter into the one
+  :class:`~gmjax.filters.base.Filter` contract, reading the noises and the prior from
+  :class:`~gmjax.models.ModelParams` at every call.
 """
 
 from __future__ import annotations
@@ -28,18 +22,18 @@ from jax.scipy.linalg import cho_solve, solve_triangular
 
 from gmjax import gaussian
 from gmjax import mixture as gmm
-from gmjax._types import Array, Matrix, Vector
+from gmjax._types import Array, Matrix, PRNGKey, Vector
+from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import StateSpaceModel
+from gmjax.models.base import ModelParams, StateSpaceModel
 
 __all__ = [
     "GaussianState",
     "SqrtState",
     "UpdateInfo",
     "LocalFilter",
-    "Filter",
-    "run",
     "from_local",
+    "gaussian_moments",
     "safe_chol",
 ]
 
@@ -95,22 +89,6 @@ class LocalFilter(NamedTuple):
     predict: Callable[..., Any]
     update: Callable[..., tuple[Any, UpdateInfo]]
     moments: Callable[[Any], tuple[Array, Array]]
-
-
-class Filter(NamedTuple):
-    """A model-level filter (DESIGN §3): pure functions over a filter state.
-
-    Attributes:
-        init: ``(prior: GaussianMixture | None = None) -> state``; ``None`` uses the model prior.
-        predict: ``(state, t) -> state``.
-        update: ``(state, z (m,), t) -> (state, info)``; an all-NaN / any-NaN ``z`` is skipped.
-        moments: optional ``state -> (mean (d,), cov (d, d))`` of the filter's estimate.
-    """
-
-    init: Callable[..., Any]
-    predict: Callable[[Any, Array], Any]
-    update: Callable[[Any, Array, Array], tuple[Any, Any]]
-    moments: Callable[[Any], tuple[Array, Array]] | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -228,76 +206,46 @@ def check_model(model: StateSpaceModel) -> tuple[int, int]:
     return d, m
 
 
+def gaussian_moments(dist: Any) -> tuple[Array, Array]:
+    """``(mean (d,), cov (d, d))`` of a noise or prior given as a :class:`GaussianMixture` (its
+    moments, the best single-Gaussian KL fit) or as a :class:`GaussianState` / ``(mean, cov)`` pair."""
+    if isinstance(dist, GaussianMixture):
+        return gmm.moments(dist)
+    mean, cov = dist
+    return jnp.asarray(mean), jnp.asarray(cov)
+
+
+def local_step_info(local: LocalFilter, state: Any, info: UpdateInfo) -> StepInfo:
+    """The :class:`StepInfo` of a single-Gaussian filter after ``local.update``.
+
+    ``extra`` holds ``innovation`` ``(m,)`` and ``innovation_cov`` ``(m, m)``.
+    """
+    mean, cov = local.moments(state)
+    flags = StepFlags(info.repaired, jnp.zeros((), bool), jnp.zeros((), bool))
+    extra = {"innovation": info.innovation, "innovation_cov": info.innovation_cov}
+    return StepInfo(mean, cov, info.loglik, jnp.ones((), jnp.int32), flags, None, extra)
+
+
 def from_local(model: StateSpaceModel, local: LocalFilter) -> Filter:
-    """Wrap a :class:`LocalFilter` into a model-level :class:`Filter`.
+    """Wrap a :class:`LocalFilter` into a :class:`Filter` over the model's parameters.
 
-    Single-Gaussian filters moment-match the GM prior and GM noises of the model: the prior is
-    replaced by ``N(mean(prior), cov(prior))`` and each noise by its mean and covariance
-    (:func:`gmjax.mixture.moments`), which is the best single-Gaussian (KL-projection) fit.
+    ``filter.params`` is ``model.params`` (:class:`~gmjax.models.ModelParams`). Single-Gaussian
+    filters moment-match a GM prior and GM noises: the prior is replaced by
+    ``N(mean(prior), cov(prior))`` and each noise by its mean and covariance
+    (:func:`gaussian_moments`), the best single-Gaussian (KL-projection) fit.
     """
-    q_mean, q_cov = gmm.moments(model.process_noise)
-    r_mean, r_cov = gmm.moments(model.measurement_noise)
 
-    def init(prior: GaussianMixture | None = None):
-        prior = model.prior if prior is None else prior
-        mean, cov = gmm.moments(prior)
-        return local.init(mean, cov)
+    def init(params: ModelParams, prior: Any = None, *, key: PRNGKey | None = None):
+        del key
+        return local.init(*gaussian_moments(params.prior if prior is None else prior))
 
-    def predict(state, t):
-        return local.predict(state, t, q_mean, q_cov)
+    def predict(params: ModelParams, state, inputs: StepInputs, *, key: PRNGKey | None = None):
+        del key
+        return local.predict(state, inputs.t, *gaussian_moments(params.process_noise))
 
-    def update(state, z, t):
-        return local.update(state, z, t, r_mean, r_cov)
+    def update(params: ModelParams, state, z, inputs: StepInputs, *, key: PRNGKey | None = None):
+        del key
+        new, info = local.update(state, z, inputs.t, *gaussian_moments(params.measurement_noise))
+        return new, local_step_info(local, new, info)
 
-    return Filter(init, predict, update, local.moments)
-
-
-def check_sequence(zs: Array, ts: Array | None) -> tuple[Array, Array]:
-    """Validate a measurement sequence ``zs`` ``(T, m)`` and its times ``ts`` ``(T,)`` (default ``1..T``)."""
-    zs = jnp.asarray(zs)
-    if zs.ndim != 2:
-        raise ValueError(f"zs: expected shape (T, m), got {zs.shape}")
-    T = zs.shape[0]
-    ts = jnp.arange(1, T + 1, dtype=jnp.int32) if ts is None else jnp.asarray(ts)
-    if ts.shape != (T,):
-        raise ValueError(f"ts: expected shape ({T},) to match zs, got {ts.shape}")
-    return zs, ts
-
-
-def run(
-    filter: Filter,
-    zs: Array,
-    ts: Array | None = None,
-    *,
-    prior: GaussianMixture | None = None,
-    init_state: Any = None,
-) -> tuple[Any, Any]:
-    """Run a filter over a measurement sequence with ``lax.scan``.
-
-    Step ``k`` predicts to time ``ts[k]`` and updates with ``zs[k]`` (see the module docstring);
-    a row of ``zs`` holding a NaN is a predict-only step.
-
-    Args:
-        filter: a :class:`Filter` (any NamedTuple with ``init``, ``predict``, ``update``).
-        zs: ``(T, m)`` measurements.
-        ts: ``(T,)`` times passed to ``f`` and ``h``; default ``1, ..., T`` (int32).
-        prior: prior mixture for ``filter.init`` (default: the model's).
-        init_state: a ready initial state (e.g. a particle filter state that holds its key);
-            overrides ``prior``.
-
-    Returns:
-        ``(states, infos)``: pytrees with a leading ``T`` axis; ``states[k]`` is the posterior at
-        ``ts[k]``.
-    """
-    zs, ts = check_sequence(zs, ts)
-    if init_state is None:
-        init_state = filter.init() if prior is None else filter.init(prior)
-
-    def step(state, zt):
-        z, t = zt
-        state = filter.predict(state, t)
-        state, info = filter.update(state, z, t)
-        return state, (state, info)
-
-    _, (states, infos) = jax.lax.scan(step, init_state, (zs, ts))
-    return states, infos
+    return Filter(init, predict, update, model.params)

@@ -1,12 +1,14 @@
 """Adaptive Gaussian-sum square-root cubature Kalman filter with split-merge (seed 001, AGSSCKF).
 
-One time step of Table 1 is split over the two halves of a :class:`~gmjax.filters.Filter`:
+One time step of Table 1 is split over the two halves of a :class:`~gmjax.filters.Filter`
+(``params`` is an :class:`AGSFParams`; ``inputs.t`` is the time passed to ``f`` and ``h``):
 
-* ``predict(state, t)`` is **Step 7** (eqs 40–41): every posterior component ``j'`` is paired with
-  every process-noise component ``l`` (``q`` of them) and propagated by a square-root cubature
-  predict (eqs 8–12) with noise ``N(w_l, Q_l)``; weight ``alpha_j' beta_l``; slot
-  ``j = l N + j'`` (noise-major, as eq 41 numbers them).
-* ``update(state, z, t)`` is **Steps 2–6**:
+* ``predict(params, state, inputs)`` is **Step 7** (eqs 40–41): every posterior component ``j'`` is
+  paired with every process-noise component ``l`` (``q`` of them) and propagated by a square-root
+  cubature predict (eqs 8–12) with noise ``N(w_l, Q_l)`` (the shared kernel
+  :func:`gmjax.filters.gsf.gs_predict`); weight ``alpha_j' beta_l``; slot ``j = l N + j'``
+  (noise-major, as eq 41 numbers them).
+* ``update(params, state, z, inputs)`` is **Steps 2–6**:
 
   - *Step 2–3, adaptive splitting.* While ``N < N_max``: the degree of nonlinearity (DON, eqs 26–29,
     :func:`degree_of_nonlinearity`) of every predicted component is computed from its cubature
@@ -15,10 +17,11 @@ One time step of Table 1 is split over the two halves of a :class:`~gmjax.filter
     :func:`gmjax.split.split_gated`); the loop stops at the first component that is not split.
   - *Step 4*, square-root cubature update of every component (eqs 13–22, 33) and the weights of
     eqs 34–35: ``alpha^{m,f} ∝ p(z | m, f) alpha^m alpha^{m,f}``, i.e. a child's prior weight is its
-    parent's weight times its split fraction; normalised in the log domain.
+    parent's weight times its split fraction; normalised in the log domain (the shared kernel
+    :func:`gmjax.filters.gsf.gs_update` with the one measurement-noise component).
   - *Step 5*, the global estimate (eqs 36–38): the moments of the updated mixture (reported in
-    :class:`AGSFInfo`, before Step 6, like :func:`gmjax.filters.gsf.build_gsf`).
-  - *Step 6*, pruning and the three merge rules (eq 39), below.
+    ``StepInfo.mean`` / ``cov``, before Step 6, like :func:`gmjax.filters.gsf.build_gsf`).
+  - *Step 6*, pruning and the three merge rules (eq 39): the stateful reducer :class:`Step6Merge`.
 
 **Split-decision levels (eq 31) and the gate.** For the selected component with DON ``psi``, level
 ``n = 1 .. max_level`` is *triggered* when ``gate_n = split_gate(psi, psi_th r^(n-1)) > 0`` and all
@@ -39,30 +42,17 @@ caps it (default 3, ``N_F <= 8``).
 (the predicted, split and updated mixture). The posterior after Step 6 is kept in
 ``capacity // q`` slots, so that the next prediction (``N_{k+1/k} = N_{k/k} q``, eq 40) fits the
 working slots. When more components survive Step 6, the heaviest ``capacity // q`` are kept and
-renormalised and :attr:`AGSFInfo.truncated` says so (a designed cap, not a failure).
+renormalised and ``StepInfo.flags.overflow`` says so (a designed cap, not a failure).
 
 **Step 6, our reading.** The paper gives the three rules in words. "Before and after a time step"
 is read as *at the previous time step's Step 6 and now*: every working slot remembers its ancestor
-(the posterior slot it descends from through prediction and splitting), and the filter state
-carries the previous posterior and the DON of each of its components.
-
-1. *Pruning*: components with weight ``< prune_threshold`` are dropped (the heaviest is always
-   kept) and the weights renormalised.
-2. *Rule 1* (low weight): a component is *low* when its weight is ``< low_weight`` now and its
-   ancestor's weight was ``< low_weight`` at the previous step; two low components are merged. A
-   merged pair stays low only while its summed weight is ``< low_weight`` ("merged gradually").
-3. *Rule 2* (closely approximate a Gaussian): the pair's weight-normalised Runnalls bound
-   ``B_ij / (w_i + w_j)`` (the KL cost of replacing the pair by its moment-matched Gaussian) is
-   ``< merge_threshold`` now, and so was their ancestors' at the previous step (0 for two
-   descendants of one ancestor, which *was* one Gaussian).
-4. *Rule 3* (low nonlinearity): both components have DON ``< merge_don`` now and had (their
-   ancestors') DON ``< merge_don`` at the previous step. The paper's threshold is
-   ``0.2 psi_th = 0.004``; we keep it as its own field so that ``psi_th = inf`` switches off
-   splitting only (a merged component's DON is the larger of the pair's).
-
-Eligible pairs are merged greedily, cheapest (smallest normalised Runnalls bound) first, with the
-moment-preserving merge of eq 39 (eq 39 as printed omits the division by ``alpha_j + alpha_j'`` that
-makes it moment-preserving; we divide), until no eligible pair remains.
+(the posterior slot it descends from through prediction and splitting). This history is the
+:class:`Step6State` of the reducer, one entry per slot (the ancestor's slot, weight and DON, and
+its row of the previous posterior's pair-cost matrix), carried in :class:`AGSFState` and given to
+each child by prediction and splitting (see :class:`Step6Merge` for the rules): predicted slot
+``l N + j'`` gets the entries of posterior slot ``j'`` (the contract's
+:func:`~gmjax.filters.gsf.inherit`, reordered to eq 41's numbering), a split child those of the
+split component, and the filter writes each working component's DON into the state before Step 6.
 
 **GSCKF and GSUKF peers.** The paper's GSCKF (Pei et al. 2013) is a Gaussian-sum CKF with its own,
 non-adaptive split-merge. We take GSCKF = this engine *without splitting* (``psi_th = inf``): same
@@ -73,10 +63,12 @@ sub-filters (``kappa = 3 - n``, :func:`build_gsukf`).
 The measurement noise must be a single Gaussian (as in both examples of §4).
 
 **Loops.** The split loop (at most ``min(N_max, capacity)`` splits) and the merge loop (at most
-``capacity - 1`` merges) have static bounds. With the hard gate they are ``lax.while_loop`` s that
-exit at the first step with nothing to do (the hard gate has no useful gradient anyway); with a
-custom ``split_gate`` they are ``lax.fori_loop`` s with a fixed trip count, so reverse-mode AD
-works (``jax.grad`` with respect to ``psi_th``, ``r``, ``l``, ``w``).
+``capacity - 1`` merges) have static bounds. They are ``lax.while_loop`` s that exit at the first
+step with nothing to do; their derivatives come from a custom JVP rule that differentiates the same
+loops run with the static trip count (same values), so ``jax.grad`` and ``jax.jvp`` through
+:func:`~gmjax.filters.run` reach the noises in ``params.model`` and the thresholds (with the hard
+gate the split and merge decisions are piecewise constant; a smooth ``split_gate`` makes the output
+differentiable in ``psi_th``, ``r``), and an undifferentiated run pays for the early exit only.
 """
 
 from __future__ import annotations
@@ -88,23 +80,26 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.special import logsumexp
 
 from gmjax import mixture as gmm
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, PRNGKey
-from gmjax.filters._core import Filter, LocalFilter, check_model, is_missing, safe_chol
-from gmjax.filters.gsf import local_filter_for
+from gmjax.filters._core import LocalFilter, check_model, is_missing, safe_chol
+from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
+from gmjax.filters.gsf import gs_predict, gs_update, inherit
+from gmjax.filters.local import local_filter_for
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import StateSpaceModel
+from gmjax.models.base import ModelParams, StateSpaceModel
 from gmjax.reduction import _util
+from gmjax.reduction import ReductionInfo, make_info
 from gmjax.split import split_gated
 
 __all__ = [
     "AGSFConfig",
+    "AGSFParams",
     "AGSFState",
-    "AGSFPredicted",
-    "AGSFInfo",
+    "Step6Merge",
+    "Step6State",
     "degree_of_nonlinearity",
     "hard_gate",
     "build_agsf",
@@ -125,7 +120,8 @@ class AGSFConfig:
         split_gate: ``(psi, threshold) -> gate in [0, 1]``; ``None`` is the hard step
             ``psi >= threshold`` (the paper).
 
-    Traced fields (thresholds; differentiable, no recompilation):
+    Traced fields (thresholds; differentiable, no recompilation; the filter reads them from
+    ``params.config`` at every call):
         psi_th: ``psi_threshold`` of eqs 30–31 (0.02). ``inf`` disables splitting (GSCKF).
         r: common ratio of eq 31 (1.5).
         l: displacement of eq 32 (0.5).
@@ -150,66 +146,55 @@ class AGSFConfig:
     merge_don: Any = 0.004
 
 
-class AGSFState(NamedTuple):
-    """Posterior of the AGSSCKF (the ``lax.scan`` carry).
+class AGSFParams(NamedTuple):
+    """Parameters of :func:`build_agsf` (a pytree: vmap, differentiate or tune them).
 
     Attributes:
-        mixture: posterior after Step 6, capacity ``capacity // q``.
-        don: ``(K,)`` DON of each posterior component (at its Step 2; ``inf`` = unknown, e.g. the
-            prior), used by merge rule 3 at the next step.
-        key: PRNG key (unused by the algorithm; kept for the Filter protocol).
+        model: the prior, GM process noise and single-Gaussian measurement noise.
+        config: the :class:`AGSFConfig` (its thresholds are leaves; its static fields must be the
+            ones the filter was built with).
     """
 
-    mixture: GaussianMixture
+    model: ModelParams
+    config: AGSFConfig
+
+
+class Step6State(NamedTuple):
+    """The per-slot history :class:`Step6Merge` reads (every leaf has a leading slot axis ``K``).
+
+    A filter gives every child (a predicted or split component) its parent's entries, in the same
+    slot order as the mixture, and sets :attr:`don` to the DON of each component before reducing.
+
+    Attributes:
+        don: ``(K,)`` DON of each slot's component now (at its Step 2; ``inf`` = unknown).
+        ancestor: ``(K,)`` int32, the slot of the previous step's posterior the slot descends from.
+        ancestor_weight: ``(K,)`` that ancestor's weight (rule 1, "low before").
+        ancestor_don: ``(K,)`` that ancestor's DON (rule 3, "low DON before").
+        ancestor_cost: ``(K, A)`` the normalised Runnalls bound between the slot's ancestor and each
+            of the ``A`` components of the previous posterior (rule 2, "close before"): row
+            ``ancestor`` of that posterior's pair-cost matrix.
+    """
+
     don: Array
-    key: PRNGKey
+    ancestor: Array
+    ancestor_weight: Array
+    ancestor_don: Array
+    ancestor_cost: Array
 
 
-class AGSFPredicted(NamedTuple):
-    """After Step 7: the predicted mixture and the history the next Step 6 needs.
+class AGSFState(NamedTuple):
+    """State of the AGSSCKF (the ``lax.scan`` carry is the posterior).
 
     Attributes:
-        mixture: predicted mixture, capacity ``capacity`` (working slots).
-        parent: ``(capacity,)`` int32, the posterior slot each predicted slot descends from.
-        previous: the :class:`AGSFState` it was predicted from ("before the time step").
+        mixture: after ``update``: the posterior after Step 6, ``capacity // q`` slots; after
+            ``predict``: the predicted mixture in the ``capacity`` working slots.
+        step6: the :class:`Step6State` aligned with ``mixture``'s slots (after ``update`` each
+            posterior component is its own ancestor, with the DON recorded at its Step 2;
+            ``inf`` for the prior).
     """
 
     mixture: GaussianMixture
-    parent: Array
-    previous: AGSFState
-
-
-class AGSFInfo(NamedTuple):
-    """Per-step report of :func:`build_agsf`'s update.
-
-    Attributes:
-        mean: ``(d,)`` global estimate (eq 36) of the updated mixture, before Step 6.
-        cov: ``(d, d)`` its covariance (eqs 37–38).
-        loglik: ``()`` ``log p(z_k | z_{1:k-1})`` under the split, predicted mixture.
-        n_predicted: ``()`` live components after Step 7 (before splitting).
-        n_split: ``()`` number of components split this step (Step 3).
-        n_updated: ``()`` live components after splitting (the sub-filters of Step 4).
-        n_components: ``()`` live components after Step 6.
-        don_max: ``()`` the largest DON of the predicted components (before splitting).
-        truncated: ``()`` bool, more than ``capacity // q`` components survived Step 6 (heaviest
-            kept).
-        repaired: ``()`` bool, a sub-filter repaired a covariance.
-        degenerate: ``()`` bool, every likelihood underflowed (weights kept at their prior).
-        flags: ``()`` bool, ``repaired | degenerate``.
-    """
-
-    mean: Array
-    cov: Array
-    loglik: Array
-    n_predicted: Array
-    n_split: Array
-    n_updated: Array
-    n_components: Array
-    don_max: Array
-    truncated: Array
-    repaired: Array
-    degenerate: Array
-    flags: Array
+    step6: Step6State
 
 
 # ---------------------------------------------------------------------------------------------
@@ -258,7 +243,7 @@ def hard_gate(psi: Array, threshold: Array) -> Array:
 
 
 # ---------------------------------------------------------------------------------------------
-# Step 6 helpers
+# Step 6 (eq 39): a stateful reducer
 
 
 def _pair_costs(w: Array, m: Array, P: Array) -> Array:
@@ -280,24 +265,20 @@ def _pair_costs(w: Array, m: Array, P: Array) -> Array:
     return jnp.where(jnp.eye(K, dtype=bool), 0.0, jnp.maximum(c, 0.0))
 
 
-def _bounded_loop(n: int, body: Callable, carry: Any, *, differentiable: bool) -> Any:
-    """Run ``carry, go = body(carry)`` at most ``n`` times, stopping after the first ``go = False``.
+def _fixed_loop(n: int, body: Callable, carry: Any) -> Any:
+    """``n`` trips of ``body`` (a ``fori_loop`` with a static trip count); after the first
+    ``go = False`` the trips are no-ops."""
+    def fbody(_, c):
+        carry, go = c
+        new, did = body(carry)
+        new = jax.tree_util.tree_map(lambda a, b: jnp.where(go, a, b), new, carry)
+        return new, go & did
 
-    ``differentiable=True``: a ``fori_loop`` with a static trip count that keeps running (as a
-    no-op) after the stop, so reverse-mode AD works. Otherwise a ``while_loop`` that exits early
-    (much faster when splits and merges are rare; forward-mode only).
-    """
-    if n <= 0:
-        return carry
-    if differentiable:
-        def fbody(_, c):
-            carry, go = c
-            new, did = body(carry)
-            new = jax.tree_util.tree_map(lambda a, b: jnp.where(go, a, b), new, carry)
-            return new, go & did
+    return jax.lax.fori_loop(0, n, fbody, (carry, jnp.asarray(True)))[0]
 
-        return jax.lax.fori_loop(0, n, fbody, (carry, jnp.asarray(True)))[0]
 
+def _while_loop(n: int, body: Callable, carry: Any) -> Any:
+    """At most ``n`` trips of ``body``, exiting after the first ``go = False`` (a ``while_loop``)."""
     def cond(c):
         i, _, go = c
         return (i < n) & go
@@ -310,22 +291,65 @@ def _bounded_loop(n: int, body: Callable, carry: Any, *, differentiable: bool) -
     return jax.lax.while_loop(cond, wbody, (jnp.zeros((), jnp.int32), carry, jnp.asarray(True)))[1]
 
 
+def _hoist(body: Callable, carry: Any) -> tuple[Callable, list]:
+    """``body`` as ``fn(carry, *consts)`` with every closed-over value (floats, ints, bools) explicit.
+
+    ``jax.closure_convert`` hoists only floating-point values; a custom-JVP function must not close
+    over any tracer, so the body is traced once to a jaxpr and its constants are passed explicitly.
+    """
+    closed, out_shape = jax.make_jaxpr(body, return_shape=True)(carry)
+    out_tree = jax.tree_util.tree_structure(out_shape)
+
+    def fn(c, *consts):
+        out = jax.core.eval_jaxpr(closed.jaxpr, consts, *jax.tree_util.tree_leaves(c))
+        return jax.tree_util.tree_unflatten(out_tree, out)
+
+    return fn, closed.consts
+
+
+def _bounded_loop(n: int, body: Callable, carry: Any) -> Any:
+    """Run ``carry, go = body(carry)`` at most ``n`` times, stopping after the first ``go = False``.
+
+    The value is a ``while_loop`` that exits early (splits and merges are rare, so this is much
+    faster than a fixed trip count, under ``vmap`` too). Its derivatives (forward and reverse mode)
+    come from a custom JVP rule that differentiates the same loop run with the static trip count
+    ``n`` (:func:`_fixed_loop`, identical values), so ``jax.grad`` works and costs the fixed loop
+    only when differentiating. Every traced value closed over by ``body`` (thresholds, noises, the
+    time) is hoisted into an explicit argument (:func:`_hoist`), so no tangent is lost and no
+    tracer leaks out of the rule.
+    """
+    if n <= 0:
+        return carry
+    fn, consts = _hoist(body, carry)
+
+    @jax.custom_jvp
+    def loop(carry, *consts):
+        return _while_loop(n, lambda c: fn(c, *consts), carry)
+
+    @loop.defjvp
+    def loop_jvp(primals, tangents):
+        return jax.jvp(lambda c, *k: _fixed_loop(n, lambda x: fn(x, *k), c), primals, tangents)
+
+    return loop(carry, *consts)
+
+
 class _MergeCarry(NamedTuple):
-    w: Array
-    m: Array
-    P: Array
-    mask: Array
-    parent: Array
-    low_before: Array
-    low_don: Array
-    don: Array
-    n_merged: Array
+    w: Array  # (K,) working weights
+    m: Array  # (K, d)
+    P: Array  # (K, d, d)
+    mask: Array  # (K,) live working slots
+    ancestor: Array  # (K,) ancestor slot (of the heavier member for a merged slot)
+    ancestor_cost: Array  # (K, A) the ancestor's row of the previous pair costs
+    low_before: Array  # (K,) rule 1's history half
+    low_don: Array  # (K,) rule 3 (now and before)
+    don: Array  # (K,) DON now (the larger of a merged pair's)
+    slot: Array  # (K_in,) working slot of every input slot (-1: pruned / padded)
+    n_merged: Array  # ()
+    cost: Array  # () summed Runnalls bound of the merges
 
 
-def _merge_step6(
-    carry: _MergeCarry, prev_cost: Array, cfg: AGSFConfig, *, differentiable: bool
-) -> _MergeCarry:
-    """Greedy pairwise merging under rules 1–3 (see the module docstring), at most ``K - 1`` merges."""
+def _merge_rules(merge: Step6Merge, carry: _MergeCarry) -> _MergeCarry:
+    """Greedy pairwise merging under rules 1–3 (see :class:`Step6Merge`), at most ``K - 1`` merges."""
     K = carry.w.shape[0]
     ar = jnp.arange(K)
     upper = ar[:, None] < ar[None, :]
@@ -333,11 +357,11 @@ def _merge_step6(
 
     def body(c: _MergeCarry):
         cost = _pair_costs(c.w, c.m, c.P)
-        same = c.parent[:, None] == c.parent[None, :]
-        before = jnp.where(same, 0.0, prev_cost[c.parent[:, None], c.parent[None, :]])
-        low = (c.w < cfg.low_weight) & c.low_before
+        same = c.ancestor[:, None] == c.ancestor[None, :]
+        before = jnp.where(same, 0.0, c.ancestor_cost[:, c.ancestor])
+        low = (c.w < merge.low_weight) & c.low_before
         rule1 = low[:, None] & low[None, :]
-        rule2 = (cost < cfg.merge_threshold) & (before < cfg.merge_threshold)
+        rule2 = (cost < merge.merge_threshold) & (before < merge.merge_threshold)
         rule3 = c.low_don[:, None] & c.low_don[None, :]
         elig = (rule1 | rule2 | rule3) & upper & c.mask[:, None] & c.mask[None, :]
         flat = jnp.where(elig, cost, jnp.inf).reshape(-1)
@@ -347,32 +371,194 @@ def _merge_step6(
         W, mm, PP = _util.merge_pair(c.w[i], c.m[i], c.P[i], c.w[j], c.m[j], c.P[j])
         at_i = (ar == i) & do
         at_j = (ar == j) & do
-        heavier = jnp.where(c.w[j] > c.w[i], c.parent[j], c.parent[i])
+        heavier = jnp.where(c.w[j] > c.w[i], j, i)
         return _MergeCarry(
             w=jnp.where(at_i, W, jnp.where(at_j, 0.0, c.w)),
             m=jnp.where(at_i[:, None], mm, jnp.where(at_j[:, None], 0.0, c.m)),
             P=jnp.where(at_i[:, None, None], PP, jnp.where(at_j[:, None, None], eye, c.P)),
             mask=c.mask & ~at_j,
-            parent=jnp.where(at_i, heavier, c.parent),
+            ancestor=jnp.where(at_i, c.ancestor[heavier], c.ancestor),
+            ancestor_cost=jnp.where(at_i[:, None], c.ancestor_cost[heavier], c.ancestor_cost),
             low_before=jnp.where(at_i, c.low_before[i] & c.low_before[j], c.low_before),
             low_don=jnp.where(at_i, c.low_don[i] & c.low_don[j], c.low_don),
             don=jnp.where(at_i, jnp.maximum(c.don[i], c.don[j]), c.don),
+            slot=jnp.where(do & (c.slot == j), i.astype(jnp.int32), c.slot),
             n_merged=c.n_merged + do.astype(jnp.int32),
+            cost=c.cost + jnp.where(do, W * jnp.where(do, flat[k], 0.0), 0.0),
         ), do
 
-    return _bounded_loop(K - 1, body, carry, differentiable=differentiable)
+    return _bounded_loop(K - 1, body, carry)
 
 
-def _fit(w, m, P, mask, don, K_post: int):
-    """Keep the live slots (in order) in ``K_post`` slots; the heaviest if too many. Renormalised."""
-    n_live = jnp.sum(mask.astype(jnp.int32))
-    truncated = n_live > K_post
-    order_keep = jnp.argsort(~mask, stable=True)[:K_post]
-    _, order_top = jax.lax.top_k(jnp.where(mask, w, -jnp.inf), K_post)
-    idx = jnp.where(truncated, order_top, order_keep)
-    live = mask[idx]
-    gm = gmm.sanitize(GaussianMixture(jnp.where(live, w[idx], 0.0), m[idx], P[idx], live))
-    return gmm.normalize(gm), jnp.where(live, don[idx], jnp.inf), truncated
+def _fit(c: _MergeCarry, capacity: int):
+    """Keep the live slots (in order) in ``capacity`` slots; the heaviest if too many. Renormalised.
+
+    Returns:
+        ``(gm, don (capacity,), overflow, labels (K_in,))``: ``labels`` maps every input slot to
+        its output slot (``-1``: pruned, padded or dropped by the overflow).
+    """
+    K = c.w.shape[0]
+    n_out = min(capacity, K)
+    n_live = jnp.sum(c.mask.astype(jnp.int32))
+    overflow = n_live > capacity
+    order_keep = jnp.argsort(~c.mask, stable=True)[:n_out]
+    _, order_top = jax.lax.top_k(jnp.where(c.mask, c.w, -jnp.inf), n_out)
+    idx = jnp.where(overflow, order_top, order_keep)
+    live = c.mask[idx]
+    gm = gmm.sanitize(GaussianMixture(jnp.where(live, c.w[idx], 0.0), c.m[idx], c.P[idx], live))
+    gm = gmm.pad(gmm.normalize(gm), capacity)
+    don = jnp.concatenate([jnp.where(live, c.don[idx], jnp.inf),
+                           jnp.full((capacity - n_out,), jnp.inf, c.don.dtype)])
+    out_slot = jnp.full((K,), -1, jnp.int32).at[idx].set(
+        jnp.where(live, jnp.arange(n_out, dtype=jnp.int32), -1))
+    labels = jnp.where(c.slot >= 0, out_slot[jnp.clip(c.slot, 0, K - 1)], -1)
+    return gm, don, overflow, labels
+
+
+@pytree_dataclass
+class Step6Merge:
+    """Step 6 of seed 001 (pruning and the three merge rules, eq 39) as a stateful reducer.
+
+    A :class:`~gmjax.reduction.Reducer`: ``init(capacity) -> Step6State``, ``reduce(gm, state, *,
+    key) -> (gm, state, ReductionInfo)`` and ``Step6Merge()(gm)`` (from a fresh state). The
+    :class:`Step6State` holds, per input slot, the component's DON now and the history of its
+    ancestor at the previous step ("before and after a time step", see the module docstring).
+
+    1. *Pruning*: components with weight ``< prune_threshold`` are dropped (the heaviest is always
+       kept) and the weights renormalised.
+    2. *Rule 1* (low weight): a component is *low* when its weight is ``< low_weight`` now and its
+       ancestor's weight was ``< low_weight``; two low components are merged. A merged pair stays
+       low only while its summed weight is ``< low_weight`` ("merged gradually").
+    3. *Rule 2* (closely approximate a Gaussian): the pair's weight-normalised Runnalls bound
+       ``B_ij / (w_i + w_j)`` (the KL cost of replacing the pair by its moment-matched Gaussian) is
+       ``< merge_threshold`` now, and so was their ancestors' (0 for two descendants of one
+       ancestor, which *was* one Gaussian).
+    4. *Rule 3* (low nonlinearity): both components have DON ``< merge_don`` now and their
+       ancestors had DON ``< merge_don``. The paper's threshold is ``0.2 psi_th = 0.004``; it is
+       its own field so that ``psi_th = inf`` switches off splitting only (a merged component's
+       DON is the larger of the pair's).
+
+    Eligible pairs are merged greedily, cheapest (smallest normalised Runnalls bound) first, with
+    the moment-preserving merge of eq 39 (eq 39 as printed omits the division by
+    ``alpha_j + alpha_j'`` that makes it moment-preserving; we divide), until no eligible pair
+    remains; a merged slot takes the history of its heavier member. The live components are then
+    fitted, in slot order, to ``capacity`` output slots (the heaviest when more survive:
+    ``info.overflow``) and renormalised.
+
+    **State contract.** The new state describes the output: each output component is its own
+    ancestor (:meth:`history`), with its DON. The filter gives every child its parent's entries
+    and sets ``state.don`` to the current DON before the next call. A fresh state (:meth:`init`)
+    has no history: the "before" halves of rules 1–3 count as met and the DON is unknown
+    (``inf``, rule 3 off), so ``Step6Merge()(gm)`` prunes and merges by rules 1–2 on ``gm`` alone.
+
+    Attributes:
+        prune_threshold, low_weight, merge_threshold, merge_don: the thresholds (leaves; see
+            :class:`AGSFConfig`).
+        capacity: static output slots (default ``None``: the input's).
+
+    ``info.cost`` is the summed (unnormalised) Runnalls bound of the merges, ``info.pruned_mass``
+    the weight removed by pruning, and ``info.aux = {"n_pruned", "n_merged"}``.
+    """
+
+    prune_threshold: Any = 1e-4
+    low_weight: Any = 0.01
+    merge_threshold: Any = 0.1
+    merge_don: Any = 0.004
+    capacity: int | None = static_field(None)
+
+    def init(self, capacity: int) -> Step6State:
+        """A fresh state (no history) for mixtures of ``capacity`` slots."""
+        zeros = jnp.zeros((capacity,))
+        return Step6State(
+            don=jnp.full((capacity,), jnp.inf),
+            ancestor=jnp.arange(capacity, dtype=jnp.int32),
+            ancestor_weight=zeros,
+            ancestor_don=zeros,
+            ancestor_cost=jnp.zeros((capacity, capacity)),
+        )
+
+    def history(self, gm: GaussianMixture, don: Array | None = None) -> Step6State:
+        """The state that names ``gm`` as the previous step's posterior (each slot its own ancestor).
+
+        Args:
+            gm: the posterior, capacity ``K``.
+            don: ``(K,)`` DON of each component (default ``inf``: unknown, e.g. a prior).
+        """
+        K = gm.capacity
+        dtype = gm.weights.dtype
+        don = jnp.full((K,), jnp.inf, dtype) if don is None else jnp.asarray(don, dtype)
+        return Step6State(
+            don=don,
+            ancestor=jnp.arange(K, dtype=jnp.int32),
+            ancestor_weight=gm.weights,
+            ancestor_don=don,
+            ancestor_cost=_pair_costs(gm.weights, gm.means, gm.covs),
+        )
+
+    def _check(self, gm: GaussianMixture, state: Step6State) -> None:
+        for name in ("prune_threshold", "low_weight", "merge_threshold", "merge_don"):
+            _util.validate_nonneg(getattr(self, name), name)
+        _util.validate_capacity(self.capacity, gm)
+        if not isinstance(state, Step6State):
+            raise ValueError(f"state: expected a Step6State, got {type(state).__name__}")
+        K = gm.capacity
+        for name, leaf in zip(Step6State._fields, state):
+            if jnp.shape(leaf)[:1] != (K,):
+                raise ValueError(f"state.{name}: expected a leading slot axis of length {K}, "
+                                 f"got shape {jnp.shape(leaf)}")
+
+    def reduce(self, gm: GaussianMixture, state: Step6State, *,
+               key: PRNGKey | None = None) -> tuple[GaussianMixture, Step6State, ReductionInfo]:
+        """Prune, merge by rules 1–3 and fit to ``capacity``: ``(reduced, new_state, info)``."""
+        del key
+        self._check(gm, state)
+        K = gm.capacity
+        cap = K if self.capacity is None else int(self.capacity)
+        w = gm.weights
+        heaviest = jnp.arange(K) == jnp.argmax(jnp.where(gm.mask, w, -jnp.inf))
+        keep = gm.mask & ((w >= self.prune_threshold) | heaviest)
+        pruned_mass = jnp.sum(jnp.where(gm.mask & ~keep, w, 0.0))
+        w = jnp.where(keep, w, 0.0)
+        w = w / jnp.sum(w)
+        eye = jnp.eye(gm.dim, dtype=gm.covs.dtype)
+        dtype = gm.weights.dtype
+        carry = _MergeCarry(
+            w=w,
+            m=jnp.where(keep[:, None], gm.means, 0.0),
+            P=jnp.where(keep[:, None, None], gm.covs, eye),
+            mask=keep,
+            ancestor=jnp.asarray(state.ancestor, jnp.int32),
+            ancestor_cost=jnp.asarray(state.ancestor_cost, dtype),
+            low_before=state.ancestor_weight < self.low_weight,
+            low_don=(state.don < self.merge_don) & (state.ancestor_don < self.merge_don),
+            don=jnp.asarray(state.don, dtype),
+            slot=jnp.where(keep, jnp.arange(K, dtype=jnp.int32), -1),
+            n_merged=jnp.zeros((), jnp.int32),
+            cost=jnp.zeros((), dtype),
+        )
+        merged = _merge_rules(self, carry)
+        out, don, overflow, labels = _fit(merged, cap)
+        aux = {"n_pruned": jnp.sum((gm.mask & ~keep).astype(jnp.int32)), "n_merged": merged.n_merged}
+        info = make_info(gm, out, labels, pruned_mass=pruned_mass, overflow=overflow,
+                         cost=merged.cost, aux=aux)
+        return out, self.history(out, don), info
+
+    def __call__(self, gm: GaussianMixture, *,
+                 key: PRNGKey | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+        """The reduction from a fresh state (:meth:`init`): ``(reduced, info)``."""
+        out, _, info = self.reduce(gm, self.init(gm.capacity), key=key)
+        return out, info
+
+
+def _step6(config: AGSFConfig, capacity: int) -> Step6Merge:
+    """The Step 6 reducer with the thresholds of ``config`` (read at each call)."""
+    return Step6Merge(
+        prune_threshold=config.prune_threshold,
+        low_weight=config.low_weight,
+        merge_threshold=config.merge_threshold,
+        merge_don=config.merge_don,
+        capacity=capacity,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -410,6 +596,132 @@ def _check_config(config: AGSFConfig) -> None:
             raise ValueError(f"config.l: eq 32 needs 0 < l < 1, got {config.l!r}")
         if not 0 < float(config.w) < 1:
             raise ValueError(f"config.w: eq 32 needs 0 < omega < 1, got {config.w!r}")
+    for name in ("prune_threshold", "low_weight", "merge_threshold", "merge_don"):
+        _util.validate_nonneg(getattr(config, name), f"config.{name}")
+
+
+def _static_part(config: AGSFConfig) -> tuple:
+    return (config.n_max, config.capacity, config.max_level, config.split_gate)
+
+
+def _single_noise(noise: GaussianMixture) -> GaussianMixture:
+    """The one-component mixture ``N(mean, cov)`` of a single-Gaussian measurement noise."""
+    mean, cov = gmm.moments(noise)
+    return GaussianMixture(jnp.ones((1,), mean.dtype), mean[None], cov[None], jnp.ones((1,), bool))
+
+
+def _noise_major(tree: Any, n_post: int, n_q: int) -> Any:
+    """Reorder parent-major children ``j' q + l`` (``gs_predict``, ``inherit``) to eq 41's ``l N + j'``."""
+    def one(a):
+        return jnp.swapaxes(a.reshape((n_post, n_q) + a.shape[1:]), 0, 1).reshape(a.shape)
+
+    return jax.tree_util.tree_map(one, tree)
+
+
+def _pad_slots(tree: Any, capacity: int) -> Any:
+    """Zero-pad every leaf's leading slot axis to ``capacity`` (padded slots hold no component)."""
+    def one(a):
+        extra = capacity - a.shape[0]
+        return jnp.pad(a, [(0, extra)] + [(0, 0)] * (a.ndim - 1))
+
+    return jax.tree_util.tree_map(one, tree)
+
+
+class _Sizes(NamedTuple):
+    C: int  # working slots
+    Q: int  # process-noise components
+    K_post: int  # posterior slots, C // Q
+    N_lim: int  # min(N_max, C)
+    L: int  # max_level
+
+
+def _dons(h: Callable, gm: GaussianMixture, t: Array) -> Array:
+    """``(K,)`` DON of every live component (0 in padded slots)."""
+    eye = jnp.eye(gm.dim, dtype=gm.covs.dtype)
+    covs = jnp.where(gm.mask[:, None, None], gm.covs, eye)
+    means = jnp.where(gm.mask[:, None], gm.means, 0.0)
+    psi = jax.vmap(lambda mu, P: degree_of_nonlinearity(h, mu, P, t))(means, covs)
+    return jnp.where(gm.mask, psi, 0.0)
+
+
+def _check_params(params: AGSFParams, static: tuple, n_q: int) -> AGSFConfig:
+    """Validate ``params`` against the build (static fields, process-noise slots); its config."""
+    if not isinstance(params, AGSFParams):
+        raise ValueError(f"params: expected an AGSFParams, got {type(params).__name__}")
+    if _static_part(params.config) != static:
+        raise ValueError("params.config: its static fields (n_max, capacity, max_level, "
+                         "split_gate) differ from the ones the filter was built with")
+    if params.model.process_noise.capacity != n_q:
+        raise ValueError(f"params.model.process_noise: the filter was built for {n_q} slots, "
+                         f"got {params.model.process_noise.capacity}")
+    return params.config
+
+
+def _init_state(cfg: AGSFConfig, sz: _Sizes, prior: Any) -> AGSFState:
+    """The prior (eq 23) in the posterior slots, named as the previous posterior of Step 6 (DON
+    unknown)."""
+    if not isinstance(prior, GaussianMixture):
+        raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
+    n_live = gmm.n_active(prior)
+    if _util.is_concrete(n_live) and int(n_live) > sz.K_post:
+        raise ValueError(
+            f"prior: {int(n_live)} live components exceed the posterior capacity {sz.K_post} "
+            f"(= capacity {sz.C} // {sz.Q} process-noise components); raise config.capacity"
+        )
+    fitted = gmm.pad(gmm.normalize(gmm.compact(prior)), max(sz.K_post, prior.capacity))
+    fitted = jax.tree_util.tree_map(lambda a: a[:sz.K_post], fitted)
+    return AGSFState(fitted, _step6(cfg, sz.K_post).history(fitted))
+
+
+def _split_stage(h: Callable, gate: Callable, cfg: AGSFConfig, sz: _Sizes, gm: GaussianMixture,
+                 t: Array, enabled: Array) -> tuple[GaussianMixture, Array, Array]:
+    """Steps 2–3: split the most nonlinear component while ``N < N_max`` (eqs 26–32).
+
+    Returns:
+        ``(split mixture, origin (C,) int32, n_split ())``: ``origin[j]`` is the slot of the
+        predicted mixture whose entries slot ``j`` inherits (itself when not a split child).
+    """
+    C, L = sz.C, sz.L
+    origin0 = jnp.arange(C, dtype=jnp.int32)
+    n_split0 = jnp.zeros((), jnp.int32)
+    if L == 0:
+        return gm, origin0, n_split0
+    dtype = gm.means.dtype
+    levels = jnp.arange(1, L + 1)
+    sizes = 2 ** levels
+
+    def body(carry):
+        gm, origin, n_split = carry
+        psi_all = jnp.where(gm.mask, _dons(h, gm, t), -jnp.inf)
+        m = jnp.argmax(psi_all)
+        psi = psi_all[m]
+        N = gmm.n_active(gm)
+        thresholds = jnp.asarray(cfg.psi_th, dtype) * jnp.asarray(cfg.r, dtype) ** (
+            levels - 1
+        ).astype(dtype)
+        psi_safe = jnp.where(jnp.isfinite(psi), psi, 0.0)
+        g = gate(psi_safe, thresholds)
+        fits = N - 1 + sizes <= sz.N_lim
+        trig = jnp.cumprod(((g > 0) & fits).astype(jnp.int32)).astype(bool)
+        do = trig[0] & enabled & jnp.isfinite(psi)
+        disp = jnp.asarray(cfg.l, dtype) * jnp.where(trig, g, 0.0)
+        kids = split_gated(gm.weights[m], gm.means[m], gm.covs[m], disp, trig, cfg.w)
+        # child 0 replaces slot m, the other live children fill free slots in order
+        free = jnp.nonzero(~gm.mask, size=C, fill_value=C)[0]
+        rank = jnp.cumsum(kids.mask[1:].astype(jnp.int32)) - 1
+        dest_rest = jnp.where(kids.mask[1:], free[jnp.clip(rank, 0, C - 1)], C)
+        dest = jnp.concatenate([jnp.full((1,), m), dest_rest])
+        dest = jnp.where(do, dest, C)
+        new = GaussianMixture(
+            gm.weights.at[dest].set(kids.weights, mode="drop"),
+            gm.means.at[dest].set(kids.means, mode="drop"),
+            gm.covs.at[dest].set(kids.covs, mode="drop"),
+            gm.mask.at[dest].set(True, mode="drop"),
+        )
+        origin = origin.at[dest].set(origin[m], mode="drop")
+        return (new, origin, n_split + do.astype(jnp.int32)), do
+
+    return _bounded_loop(sz.N_lim, body, (gm, origin0, n_split0))
 
 
 def build_agsf(
@@ -422,20 +734,35 @@ def build_agsf(
 
     Args:
         model: GM prior (eq 23) and GM process noise (eq 24); a single-Gaussian measurement noise.
-        config: an :class:`AGSFConfig`.
+            Their values are the defaults of ``params.model``; ``f`` and ``h`` stay in the filter.
+        config: an :class:`AGSFConfig`; ``params.config``. Its static fields (``n_max``,
+            ``capacity``, ``max_level``, ``split_gate``) and the number ``q`` of process-noise
+            components fix the slot counts at build time; its thresholds are read from
+            ``params.config`` at every call.
         local: the sub-filter (default ``"sckf"``, eqs 8–22); ``"ukf"`` / ``"ckf"`` or any
             :class:`LocalFilter` give the GSUKF / GSCKF variants. The DON always uses the cubature
             points of eq 26.
 
     Returns:
-        ``Filter(init, predict, update, moments)``: ``init(prior=None, *, key=None) -> AGSFState``,
-        ``predict(AGSFState, t) -> AGSFPredicted``, ``update(state, z, t) -> (AGSFState,
-        AGSFInfo)`` (``state`` an :class:`AGSFPredicted`, or an :class:`AGSFState` when no
-        prediction precedes), ``moments(state)``.
+        ``Filter(init, predict, update, params)`` over :class:`AGSFState` with
+        ``params = AGSFParams(model.params, config)``. ``predict`` (Step 7) gives the
+        ``capacity`` working slots, ``update`` (Steps 2–6) the ``capacity // q`` posterior slots
+        (an ``update`` without a preceding ``predict`` pads the posterior to the working slots).
+        The :class:`~gmjax.filters.StepInfo` has ``mean`` / ``cov`` = eqs 36–38 of the updated
+        mixture before Step 6, ``n_components`` after Step 6, ``flags.overflow`` = more than
+        ``capacity // q`` components survived Step 6, ``reduction`` = Step 6's
+        :class:`~gmjax.reduction.ReductionInfo` (:class:`Step6Merge`), and ``extra`` =
+        ``{"n_predicted": live components after Step 7, "n_split": components split in Step 3,
+        "n_updated": live components after splitting (the sub-filters of Step 4), "don_max": the
+        largest DON of the predicted components}``.
 
     Raises:
         ValueError: bad model or config, a multi-component measurement noise, or a capacity that
-            cannot hold one posterior component per process-noise component.
+            cannot hold one posterior component per process-noise component; at call time,
+            params whose static part differs from the build.
+
+    The builder is long only because it closes the three functions of the contract over ``f``,
+    ``h``, the local filter and the static sizes; the steps themselves are module-level helpers.
     """
     check_model(model)
     _check_config(config)
@@ -446,205 +773,83 @@ def build_agsf(
             f"model.measurement_noise: AGSSCKF (seed 001) assumes one Gaussian measurement noise, "
             f"got {int(np.sum(np.asarray(rn.mask)))} components"
         )
-    r_mean, r_cov = gmm.moments(rn)
-    qn = model.process_noise
-    q_logw = gmm.log_weights(qn)
-    q_logw = q_logw - logsumexp(q_logw)
-    Q = qn.capacity
+    Q = model.process_noise.capacity
     C = config.n_max if config.capacity is None else config.capacity
     if C < Q:
         raise ValueError(
             f"config.capacity: {C} working slots cannot hold the {Q} children of one component "
             f"(process noise has {Q} components)"
         )
-    K_post = C // Q
-    N_lim = min(config.n_max, C)
-    L = config.max_level
+    sz = _Sizes(C=C, Q=Q, K_post=C // Q, N_lim=min(config.n_max, C), L=config.max_level)
     gate = hard_gate if config.split_gate is None else config.split_gate
-    # the hard gate has zero gradient anyway: loops may exit early (while_loop); a custom gate gets
-    # fixed-trip-count loops so that reverse-mode AD reaches psi_th, r, l, w
-    differentiable = config.split_gate is not None
     h = model.h
-    cfg = config
+    static = _static_part(config)
 
-    def dons(gm: GaussianMixture, t) -> Array:
-        eye = jnp.eye(gm.dim, dtype=gm.covs.dtype)
-        covs = jnp.where(gm.mask[:, None, None], gm.covs, eye)
-        means = jnp.where(gm.mask[:, None], gm.means, 0.0)
-        psi = jax.vmap(lambda mu, P: degree_of_nonlinearity(h, mu, P, t))(means, covs)
-        return jnp.where(gm.mask, psi, 0.0)
+    def check_params(params: AGSFParams) -> AGSFConfig:
+        return _check_params(params, static, Q)
 
-    def init(prior: GaussianMixture | None = None, *, key: PRNGKey | None = None) -> AGSFState:
-        prior = model.prior if prior is None else prior
-        if not isinstance(prior, GaussianMixture):
-            raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
-        n_live = gmm.n_active(prior)
-        if _util.is_concrete(n_live) and int(n_live) > K_post:
-            raise ValueError(
-                f"prior: {int(n_live)} live components exceed the posterior capacity {K_post} "
-                f"(= capacity {C} // {Q} process-noise components); raise config.capacity"
-            )
-        fitted = gmm.pad(gmm.normalize(gmm.compact(prior)), max(K_post, prior.capacity))
-        fitted = jax.tree_util.tree_map(lambda a: a[:K_post], fitted)
-        don = jnp.full((K_post,), jnp.inf, fitted.means.dtype)
-        return AGSFState(fitted, don, jax.random.key(0) if key is None else key)
+    def init(params: AGSFParams, prior: GaussianMixture | None = None, *,
+             key: PRNGKey | None = None) -> AGSFState:
+        del key
+        cfg = check_params(params)
+        return _init_state(cfg, sz, params.model.prior if prior is None else prior)
 
-    def predict(state: AGSFState, t: Array) -> AGSFPredicted:
-        gm = state.mixture
+    def predict(params: AGSFParams, state: AGSFState, inputs: StepInputs, *,
+                key: PRNGKey | None = None) -> AGSFState:
+        """Step 7 (eqs 40–41): ``capacity // q`` posterior slots -> ``capacity`` working slots."""
+        del key
+        check_params(params)
+        K = state.mixture.capacity
+        predicted = gs_predict(local, state.mixture, inputs.t, params.model.process_noise)
+        predicted, step6 = _noise_major((predicted, inherit(state.step6, Q)), K, Q)
+        return AGSFState(gmm.pad(predicted, C), _pad_slots(step6, C))
 
-        def one(mean, cov, qm, qP):
-            return local.moments(local.predict(local.init(mean, cov), t, qm, qP))
-
-        # noise-major (eq 41): slot j = l N + j'
-        pair = jax.vmap(jax.vmap(one, (0, 0, None, None)), (None, None, 0, 0))
-        means, covs = pair(gm.means, gm.covs, qn.means, qn.covs)  # (Q, K, d), (Q, K, d, d)
-        log_w = q_logw[:, None] + gmm.log_weights(gm)[None, :]
-        mask = qn.mask[:, None] & gm.mask[None, :]
-        d = gm.dim
-        flat = GaussianMixture(
-            jnp.where(mask, jnp.exp(log_w), 0.0).reshape(-1),
-            means.reshape(-1, d),
-            covs.reshape(-1, d, d),
-            mask.reshape(-1),
-        )
-        flat = gmm.pad(gmm.sanitize(flat), C)
-        parent = jnp.concatenate(
-            [jnp.tile(jnp.arange(K_post, dtype=jnp.int32), Q), jnp.zeros(C - Q * K_post, jnp.int32)]
-        )
-        return AGSFPredicted(flat, parent, state)
-
-    def split_stage(gm: GaussianMixture, parent: Array, t, enabled: Array):
-        """Steps 2–3: split the most nonlinear component while ``N < N_max``."""
-        n_split0 = jnp.zeros((), jnp.int32)
-        if L == 0:
-            return gm, parent, n_split0
-        dtype = gm.means.dtype
-        levels = jnp.arange(1, L + 1)
-        sizes = 2 ** levels
-
-        def body(carry):
-            gm, parent, n_split = carry
-            psi_all = jnp.where(gm.mask, dons(gm, t), -jnp.inf)
-            m = jnp.argmax(psi_all)
-            psi = psi_all[m]
-            N = gmm.n_active(gm)
-            thresholds = jnp.asarray(cfg.psi_th, dtype) * jnp.asarray(cfg.r, dtype) ** (
-                levels - 1
-            ).astype(dtype)
-            psi_safe = jnp.where(jnp.isfinite(psi), psi, 0.0)
-            g = gate(psi_safe, thresholds)
-            fits = N - 1 + sizes <= N_lim
-            trig = jnp.cumprod(((g > 0) & fits).astype(jnp.int32)).astype(bool)
-            do = trig[0] & enabled & jnp.isfinite(psi)
-            disp = jnp.asarray(cfg.l, dtype) * jnp.where(trig, g, 0.0)
-            kids = split_gated(gm.weights[m], gm.means[m], gm.covs[m], disp, trig, cfg.w)
-            # child 0 replaces slot m, the other live children fill free slots in order
-            free = jnp.nonzero(~gm.mask, size=C, fill_value=C)[0]
-            rank = jnp.cumsum(kids.mask[1:].astype(jnp.int32)) - 1
-            dest_rest = jnp.where(kids.mask[1:], free[jnp.clip(rank, 0, C - 1)], C)
-            dest = jnp.concatenate([jnp.full((1,), m), dest_rest])
-            dest = jnp.where(do, dest, C)
-            new = GaussianMixture(
-                gm.weights.at[dest].set(kids.weights, mode="drop"),
-                gm.means.at[dest].set(kids.means, mode="drop"),
-                gm.covs.at[dest].set(kids.covs, mode="drop"),
-                gm.mask.at[dest].set(True, mode="drop"),
-            )
-            parent = parent.at[dest].set(parent[m], mode="drop")
-            return (new, parent, n_split + do.astype(jnp.int32)), do
-
-        return _bounded_loop(N_lim, body, (gm, parent, n_split0), differentiable=differentiable)
-
-    def update(state: AGSFPredicted | AGSFState, z: Array, t: Array) -> tuple[AGSFState, AGSFInfo]:
-        if isinstance(state, AGSFState):  # no prediction before this update
-            parent = jnp.concatenate(
-                [jnp.arange(K_post, dtype=jnp.int32), jnp.zeros(C - K_post, jnp.int32)]
-            )
-            state = AGSFPredicted(gmm.pad(state.mixture, C), parent, state)
-        gm, parent, previous = state
-        z = jnp.asarray(z)
-        missing = is_missing(z)
+    def update(params: AGSFParams, state: AGSFState, z: Array, inputs: StepInputs, *,
+               key: PRNGKey | None = None) -> tuple[AGSFState, StepInfo]:
+        """Steps 2–6 (eqs 26–39) on the ``capacity`` working slots."""
+        cfg = check_params(params)
+        t = inputs.t
+        gm, step6 = state
+        if gm.capacity < C:  # no prediction before this update
+            gm, step6 = gmm.pad(gm, C), _pad_slots(step6, C)
+        missing = is_missing(jnp.asarray(z))
         n_predicted = gmm.n_active(gm)
-        don_max = jnp.max(jnp.where(gm.mask, dons(gm, t), 0.0))
+        don_max = jnp.max(jnp.where(gm.mask, _dons(h, gm, t), 0.0))
 
-        # Steps 2-3
-        gm, parent, n_split = split_stage(gm, parent, t, ~missing)
-        don_now = dons(gm, t)
+        # Steps 2-3; every split child inherits its parent's Step 6 history
+        gm, origin, n_split = _split_stage(h, gate, cfg, sz, gm, t, ~missing)
+        step6 = jax.tree_util.tree_map(lambda a: a[origin], step6)._replace(don=_dons(h, gm, t))
 
-        # Step 4 (eqs 13-22, 33-35)
-        def one(mean, cov):
-            new, info = local.update(local.init(mean, cov), z, t, r_mean, r_cov)
-            mu, P = local.moments(new)
-            return mu, P, info.loglik, info.repaired
-
-        means, covs, loglik, repaired = jax.vmap(one)(gm.means, gm.covs)
-        log_prior = jnp.where(gm.mask, gmm.log_weights(gm), -jnp.inf)
-        log_w = jnp.where(gm.mask, log_prior + jnp.where(missing, 0.0, loglik), -jnp.inf)
-        log_norm = logsumexp(log_w)
-        degenerate = ~jnp.isfinite(log_norm)
-        log_w = jnp.where(degenerate, log_prior, log_w)
-        log_w_norm = jnp.where(degenerate, logsumexp(log_prior), log_norm)
-        weights = jnp.where(gm.mask, jnp.exp(log_w - log_w_norm), 0.0)
-        updated = gmm.sanitize(GaussianMixture(weights, means, covs, gm.mask))
+        # Step 4 (eqs 13-22, 33-35); one measurement-noise component: child i of slot i
+        up = gs_update(local, gm, z, t, _single_noise(params.model.measurement_noise))
 
         # Step 5 (eqs 36-38)
-        mean, cov = gmm.moments(updated)
+        mean, cov = gmm.moments(up.mixture)
 
         # Step 6: pruning, then rules 1-3 (eq 39)
-        w = updated.weights
-        heaviest = jnp.arange(C) == jnp.argmax(jnp.where(updated.mask, w, -jnp.inf))
-        keep = updated.mask & ((w >= cfg.prune_threshold) | heaviest)
-        w = jnp.where(keep, w, 0.0)
-        w = w / jnp.sum(w)
-        eye = jnp.eye(gm.dim, dtype=covs.dtype)
-        pm = previous.mixture
-        prev_cost = _pair_costs(pm.weights, pm.means, pm.covs)
-        low_before = pm.weights[parent] < cfg.low_weight
-        prev_don = previous.don[parent]
-        low_don = (don_now < cfg.merge_don) & (prev_don < cfg.merge_don)
-        carry = _MergeCarry(
-            w=w,
-            m=jnp.where(keep[:, None], updated.means, 0.0),
-            P=jnp.where(keep[:, None, None], updated.covs, eye),
-            mask=keep,
-            parent=parent,
-            low_before=low_before,
-            low_don=low_don,
-            don=don_now,
-            n_merged=jnp.zeros((), jnp.int32),
-        )
-        merged = _merge_step6(carry, prev_cost, cfg, differentiable=differentiable)
-        post, post_don, truncated = _fit(
-            merged.w, merged.m, merged.P, merged.mask, merged.don, K_post
-        )
-        rep = jnp.any(repaired & gm.mask) & ~missing
-        info = AGSFInfo(
+        merge = _step6(cfg, sz.K_post)
+        post, step6, rinfo = merge.reduce(up.mixture, step6, key=key)
+        info = StepInfo(
             mean=mean,
             cov=cov,
-            loglik=jnp.where(missing, 0.0, log_norm),
-            n_predicted=n_predicted,
-            n_split=n_split,
-            n_updated=gmm.n_active(gm),
+            loglik=up.loglik,
             n_components=gmm.n_active(post),
-            don_max=don_max,
-            truncated=truncated,
-            repaired=rep,
-            degenerate=degenerate,
-            flags=rep | degenerate,
+            flags=StepFlags(repaired=up.repaired, overflow=rinfo.overflow,
+                            degenerate=up.degenerate),
+            reduction=rinfo,
+            extra={"n_predicted": n_predicted, "n_split": n_split,
+                   "n_updated": gmm.n_active(gm), "don_max": don_max},
         )
-        return AGSFState(post, post_don, previous.key), info
+        return AGSFState(post, step6), info
 
-    def moments(state: AGSFState | AGSFPredicted) -> tuple[Array, Array]:
-        return gmm.moments(state.mixture)
-
-    return Filter(init, predict, update, moments)
+    return Filter(init, predict, update, AGSFParams(model.params, config))
 
 
 def build_gsckf(model: StateSpaceModel, config: AGSFConfig = AGSFConfig()) -> Filter:
     """GSCKF peer of seed 001 Tables 2–3: :func:`build_agsf` with ``psi_th = inf`` (no splitting).
 
     Same square-root cubature sub-filters, pruning and merge rules as the AGSSCKF (see the module
-    docstring for why this reading of the paper's GSCKF).
+    docstring for why this reading of the paper's GSCKF); ``params.config.psi_th`` is ``inf``.
     """
     return build_agsf(model, dataclasses.replace(config, psi_th=math.inf), local="sckf")
 

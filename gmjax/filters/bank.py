@@ -12,7 +12,7 @@ at the end of every step: from ``N(x̂_{k-1}, P_{k-1})`` the bank runs one Kalma
 ================  ==========================================================================
 ``gsf-merge``     moment-matched merge of all ``L·J`` clusters (eqs 10–11)
 ``gsf-remove``    keep the cluster of largest ``mu^{ij}`` (eqs 12–14)
-``matched``       keep the *true* active cluster (oracle; needs ``active``, see below)
+``matched``       keep the *true* active cluster (oracle; reads ``inputs.aux``, see below)
 ``kf-mm``         a Kalman filter on the moment-matched noises (``L = J = 1``)
 ``red-gsfm``      active-cluster reduction (eqs 15–17), initial estimate = GSF-merge mean (eq 10)
 ``red-gsfr``      … initial estimate = GSF-remove mean (eqs 12–13)
@@ -27,6 +27,11 @@ The active-cluster reduction: with an initial estimate ``x̌_k`` the noises are 
 that model's Kalman posterior ``(x̂^{ij}_{k|k}, P^{ij}_{k|k})`` computed from ``(x̂_{k-1}, P_{k-1})``
 (the other clusters are removed). Because eq 17 factorises, ``i*`` and ``j*`` are two argmaxes.
 
+The bank is the Gaussian sum filter of one Gaussian: the prediction is
+:func:`gmjax.filters.gsf.gs_predict` of ``N(x̂_{k-1}, P_{k-1})`` with the ``L`` process clusters
+(eqs 5–6) and the full bank is :func:`gmjax.filters.gsf.gs_update` of that ``L``-component mixture
+with the ``J`` measurement clusters (eqs 7–9; child ``i J + j`` is model ``M^{ij}``).
+
 Readings where the paper is not explicit (each also stated where it is implemented):
 
 * **Rank-deficient process noise.** In the random-walk-velocity model (eqs 20–22) ``v_k = G v``
@@ -35,6 +40,8 @@ Readings where the paper is not explicit (each also stated where it is implement
   ``G^+ v̌`` against ``N(G^+ u^i, G^+ Q^i G^{+T})`` (``G^+`` the pseudo-inverse); the default
   ``noise_gain="auto"`` finds ``G`` from the eigenvectors of ``sum_i w^i Q^i`` whose eigenvalues
   exceed ``1e-6`` of the largest (identity, i.e. the full density, when ``Q`` is full rank).
+  ``G^+`` is a static, build-time quantity (``"auto"`` needs concrete arrays); the cluster
+  means and covariances it projects are read from ``params`` at every call.
 * **Red-PKG** (§IV-A 3): "GSF-merge state estimation, but with preloaded Kalman gains" that "can
   be evaluated offline". We take the gain sequence ``K̄_k`` of the Riccati recursion with the
   weight-averaged cluster covariances ``Q̄ = sum_i w^i Q^i``, ``R̄ = sum_j p^j R^j`` from the prior
@@ -46,17 +53,28 @@ Readings where the paper is not explicit (each also stated where it is implement
   other reading (the moment-matched Kalman filter's gain) would make that remark false.
 * **Red-SSG** (§IV-A 4): sub-filter ``(i, j)`` uses its steady-state gain and innovation
   covariance, the fixed point of the Riccati recursion with ``(F, H, Q^i, R^j)`` (``F`` and ``H``
-  at ``t = 1``; the model must be time invariant), found at build time by ``ssg_iterations``
-  Riccati steps (checked against ``scipy.linalg.solve_discrete_are`` in the tests).
+  at ``t = 1``; the model must be time invariant), found by ``ssg_iterations`` Riccati steps
+  from the covariance of ``params.model.prior`` (checked against ``scipy.linalg.solve_discrete_are``
+  in the tests). They are computed from ``params`` in ``init`` and carried in the state
+  (:attr:`BankState.ss_gain`, :attr:`BankState.ss_innovation_cov`), so ``jax.grad`` w.r.t. the
+  noise covariances reaches them and a step does not repeat the 2000 iterations.
 * **Red-DKG** (§IV-A 5): "the gain of a Kalman filter run at that iteration", computed from this
   filter's own ``P_{k-1}``; the Kalman filter of the paper's comparisons is the one on the
   moment-matched noises, so ``x̌_k`` is one such Kalman step from ``(x̂_{k-1}, P_{k-1})``. This
   matches §V-A: Red-DKG suffers where "a single Gaussian distribution cannot represent" the noise.
 * **Matched** (§III-A): it keeps the cluster of the model that generated the data. The true
-  ``(i, j)`` is passed per step as ``update(state, z, t, active=(i, j))`` (``run_bank`` takes an
-  ``active`` array ``(T, 2)``; :func:`gmjax.models.seed004.simulate_labeled` produces it).
-  Without ``active`` the matched filter raises ``ValueError``.
-* **Missing measurement** (a NaN in ``z``): every method returns the moment-matched prediction.
+  ``(i, j)`` is passed per step in ``inputs.aux`` (``(2,)`` int): run it with
+  ``gmjax.filters.run(filt, zs, StepInputs(t=ts, aux=active))``, ``active`` ``(T, 2)`` from
+  :func:`gmjax.models.seed004.simulate_labeled`. Without it the matched filter raises
+  ``ValueError``.
+* **Log-likelihood** (``StepInfo.loglik``): the log of the normaliser of eq 9 for the bank's own
+  Kalman sub-filters, ``log sum_ij w^i p^j N(z_k; ẑ^{ij}, S^{ij})`` from ``(x̂_{k-1}, P_{k-1})``,
+  i.e. ``log p(z_k | z_{1:k-1})`` under the filter's predicted Gaussian sum, for every method
+  (``kf-mm``: its single moment-matched model). It is not the normaliser of the approximate-gain
+  weights of Red-PKG / Red-SSG. Methods that do not use the full bank still compute it; under
+  ``jit`` XLA drops that work when ``loglik`` is not used.
+* **Missing measurement** (a NaN in ``z``): every method returns the moment-matched prediction
+  (log-likelihood 0).
 
 Time indexing follows :func:`gmjax.filters.run`.
 """
@@ -72,26 +90,26 @@ from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
 from gmjax import mixture as gmm
-from gmjax._types import Array
+from gmjax._types import Array, PRNGKey
 from gmjax.filters._core import (
-    Filter,
+    LocalFilter,
     check_model,
-    check_sequence,
     is_missing,
     kalman_gain,
     repair_cov,
     safe_chol,
 )
-from gmjax.filters.kalman import _affine_parts, _linearized_filter
+from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs, run
+from gmjax.filters.gsf import gs_predict, gs_update
+from gmjax.filters._linearized import affine_parts, linearized_filter
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import StateSpaceModel
+from gmjax.models.base import ModelParams, StateSpaceModel
 
 __all__ = [
     "BANK_METHODS",
+    "BankParams",
     "BankState",
-    "BankInfo",
     "build_bank",
-    "run_bank",
     "sweep_errors",
     "steady_state_gains",
 ]
@@ -107,6 +125,22 @@ BANK_METHODS = (
     "red-ssg",
     "red-dkg",
 )
+_FULL_BANK = ("gsf-merge", "gsf-remove", "red-gsfm", "red-gsfr")
+
+Linearize = Callable[[Array, Array], tuple[Array, Array]]
+
+
+class BankParams(NamedTuple):
+    """Parameters of :func:`build_bank` (a pytree).
+
+    Attributes:
+        model: the model's prior and its GM process / measurement noises (the ``L`` and ``J``
+            clusters of eqs 3–4). Everything derived from them — the normalised log weights, the
+            moment-matched noises (``kf-mm``, ``red-dkg``), ``Q̄``/``R̄`` (``red-pkg``) and the
+            steady-state gains (``red-ssg``, in ``init``) — is computed from here at call time.
+    """
+
+    model: ModelParams
 
 
 class BankState(NamedTuple):
@@ -116,50 +150,49 @@ class BankState(NamedTuple):
         mean: ``(d,)`` after ``update`` the posterior ``x̂_{k|k}``; after ``predict`` the mean of the
             predicted mixture.
         cov: ``(d, d)`` the matching covariance.
-        pred_means: ``(L, d)`` ``F x̂_{k-1} + u^i`` (one per process-noise cluster).
-        pred_covs: ``(L, d, d)`` ``F P_{k-1} F^T + Q^i``.
+        predicted: the predicted mixture of ``L`` slots, ``N(F x̂_{k-1} + u^i, F P_{k-1} F^T + Q^i)``
+            with weights ``w^i`` (eqs 5–6; after ``init``: the prior on every slot).
         f_mean: ``(d,)`` ``F x̂_{k-1}`` (the reference point of eq 15).
         f_cov: ``(d, d)`` ``F P_{k-1} F^T`` (Red-DKG adds the moment-matched ``Q`` to it).
         preload_cov: ``(d, d)`` the data-independent covariance of the preloaded-gain recursion
             (Red-PKG; posterior after ``update``, prediction after ``predict``).
+        ss_gain: ``(L, J, d, m)`` the steady-state gains of ``red-ssg`` (computed in ``init``);
+            ``None`` for the other methods.
+        ss_innovation_cov: ``(L, J, m, m)`` the matching innovation covariances, or ``None``.
     """
 
     mean: Array
     cov: Array
-    pred_means: Array
-    pred_covs: Array
+    predicted: GaussianMixture
     f_mean: Array
     f_cov: Array
     preload_cov: Array
+    ss_gain: Array | None = None
+    ss_innovation_cov: Array | None = None
 
 
-class BankInfo(NamedTuple):
-    """Per-step report.
-
-    Attributes:
-        mean, cov: ``(d,)``, ``(d, d)`` the reduced posterior.
-        initial: ``(d,)`` the initial estimate ``x̌_k`` of the active-cluster reduction (for the
-            other methods: the posterior mean).
-        active: ``(2,)`` int32 ``(i, j)`` of the kept model; ``(-1, -1)`` for ``gsf-merge`` and on a
-            predict-only step.
-        repaired: ``()`` bool, a covariance was repaired (not numerically positive definite).
-        degenerate: ``()`` bool, every model's likelihood underflowed (the prior weights ``w^i p^j``
-            were used in eq 9 instead).
-        missing: ``()`` bool, the measurement held a NaN (predict-only step).
-    """
-
-    mean: Array
-    cov: Array
-    initial: Array
-    active: Array
-    repaired: Array
-    degenerate: Array
-    missing: Array
+# ---------------------------------------------------------------------------------------------
+# Quantities derived from the parameters (computed at call time).
 
 
 def _noise_log_weights(noise: GaussianMixture) -> Array:
+    """Normalised log weights ``(n,)`` of a noise mixture, ``-inf`` on padded slots."""
     lw = gmm.log_weights(noise)
     return jnp.where(noise.mask, lw - logsumexp(lw), -jnp.inf)
+
+
+def _bank_noises(model: ModelParams, method: str) -> tuple[GaussianMixture, GaussianMixture]:
+    """The bank's process and measurement clusters: the model's, or for ``kf-mm`` their moments."""
+    q_noise, r_noise = model.process_noise, model.measurement_noise
+    if method == "kf-mm":
+        q_noise = gmm.from_gaussian(*gmm.moments(q_noise))
+        r_noise = gmm.from_gaussian(*gmm.moments(r_noise))
+    return q_noise, r_noise
+
+
+def _average_cov(noise: GaussianMixture) -> Array:
+    """The within-cluster average ``sum_i w^i Q^i`` ``(k, k)`` (``Q̄``, ``R̄`` of Red-PKG)."""
+    return jnp.einsum("k,kij->ij", jnp.exp(_noise_log_weights(noise)), noise.covs)
 
 
 def _riccati_step(P: Array, F: Array, H: Array, Q: Array, R: Array) -> tuple[Array, Array, Array]:
@@ -184,8 +217,15 @@ def steady_state_gains(F: Array, H: Array, Q: Array, R: Array, P0: Array, *, ite
     return K, S
 
 
+def _pair_steady_state_gains(q_covs: Array, r_covs: Array, F: Array, H: Array, P0: Array,
+                             iterations: int) -> tuple[Array, Array]:
+    """:func:`steady_state_gains` of every model ``(i, j)``: ``(L, J, d, m)``, ``(L, J, m, m)``."""
+    one = lambda Q, R: steady_state_gains(F, H, Q, R, P0, iterations=iterations)  # noqa: E731
+    return jax.vmap(jax.vmap(one, (None, 0)), (0, None))(q_covs, r_covs)
+
+
 def _resolve_noise_gain(noise_gain: Any, noise: GaussianMixture) -> Array:
-    """The pseudo-inverse ``G^+`` ``(q, d)`` used for the process-noise term of eq 17."""
+    """The pseudo-inverse ``G^+`` ``(q, d)`` used for the process-noise term of eq 17 (static)."""
     d = noise.dim
     dtype = noise.means.dtype
     if isinstance(noise_gain, str):
@@ -211,6 +251,285 @@ def _resolve_noise_gain(noise_gain: Any, noise: GaussianMixture) -> Array:
     return jnp.linalg.pinv(G)
 
 
+# ---------------------------------------------------------------------------------------------
+# The pieces of one step (pure functions).
+
+
+def _eq9_log_weights(q_lw: Array, r_lw: Array, ll: Array) -> tuple[Array, Array]:
+    """Eq 9 in the log domain from the ``(L, J)`` log-likelihoods ``ll``: ``(log mu, degenerate)``.
+
+    If every likelihood underflows the prior weights ``w^i p^j`` are used and ``degenerate`` is set.
+    """
+    log_prior = q_lw[:, None] + r_lw[None, :]
+    log_w = log_prior + ll
+    norm = logsumexp(log_w)
+    degenerate = ~jnp.isfinite(norm)
+    log_w = jnp.where(degenerate, log_prior, log_w - jnp.where(degenerate, 0.0, norm))
+    return log_w, degenerate
+
+
+def _merge(mu: Array, means: Array) -> Array:
+    """The merged mean of eq 10, ``sum_ij mu^{ij} x̂^{ij}`` ``(d,)`` from the ``(L, J)`` weights."""
+    return jnp.einsum("ij,ijd->d", mu, means)
+
+
+def _weights_from_log(log_mu: Array) -> Array:
+    """``mu = exp(log mu)``, 0 where ``log mu = -inf`` (padded slots)."""
+    return jnp.where(jnp.isfinite(log_mu), jnp.exp(log_mu), 0.0)
+
+
+def _argmax2(score: Array) -> Array:
+    """``(2,)`` int32 ``(i, j)`` of the largest entry of an ``(L, J)`` score (eq 12)."""
+    flat = jnp.argmax(score.reshape(-1))
+    J = score.shape[1]
+    return jnp.stack([flat // J, flat % J]).astype(jnp.int32)
+
+
+def _one_update(local: LocalFilter, predicted: GaussianMixture, r_noise: GaussianMixture,
+                sel: Array, z: Array, t: Array) -> tuple[Array, Array, Array]:
+    """Kalman posterior of model ``M^{ij}`` (eqs 7–8) for ``sel = (i, j)``: ``(mean, cov, repaired)``."""
+    i, j = sel[0], sel[1]
+    st = local.init(predicted.means[i], predicted.covs[i])
+    new, info = local.update(st, z, t, r_noise.means[j], r_noise.covs[j])
+    mean, cov = local.moments(new)
+    return mean, cov, info.repaired
+
+
+def _preload_update(h_lin: Linearize, mean: Array, preload_cov: Array, r_bar: Array,
+                    t: Array) -> tuple[Array, Array, Array]:
+    """The data-independent update of the preloaded-gain recursion (Red-PKG, §IV-A 3).
+
+    Returns:
+        ``(P̄_{k|k} (d, d), K̄_k (d, m), S̄_k (m, m))``.
+    """
+    _, Hc = h_lin(mean, t)
+    Sp = gaussian.symmetrize(Hc @ preload_cov @ Hc.T + r_bar)
+    Kp = kalman_gain(preload_cov @ Hc.T, safe_chol(Sp).factor)
+    Ap = jnp.eye(mean.shape[0], dtype=mean.dtype) - Kp @ Hc
+    return gaussian.symmetrize(Ap @ preload_cov @ Ap.T + Kp @ r_bar @ Kp.T), Kp, Sp
+
+
+def _gain_estimate(h_lin: Linearize, predicted: GaussianMixture, r_noise: GaussianMixture,
+                   q_lw: Array, r_lw: Array, K: Array, S: Array, z: Array,
+                   t: Array) -> tuple[Array, Array, Array]:
+    """GSF-merge mean (eqs 9–10) with given gains (Red-PKG, Red-SSG).
+
+    Args:
+        K: ``(L, J, d, m)`` the gain of every model.
+        S: ``(L, J, m, m)`` its innovation covariance (also in the eq 9 weights).
+
+    Returns:
+        ``(x̌ (d,), degenerate, repaired)``.
+    """
+    m = z.shape[0]
+
+    def one(i, j):
+        xp = predicted.means[i]
+        y = z - (h_lin(xp, t)[0] + r_noise.means[j])
+        Lc = safe_chol(S[i, j])
+        r = jax.scipy.linalg.solve_triangular(Lc.factor, y, lower=True)
+        ll = -0.5 * (m * jnp.log(2 * jnp.pi) + r @ r) - jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lc.factor))))
+        return xp + K[i, j] @ y, ll, Lc.repaired
+
+    ii, jj = jnp.meshgrid(jnp.arange(K.shape[0]), jnp.arange(K.shape[1]), indexing="ij")
+    xs, ll, rep = jax.vmap(jax.vmap(one))(ii, jj)
+    log_mu, degenerate = _eq9_log_weights(q_lw, r_lw, ll)
+    return _merge(_weights_from_log(log_mu), xs), degenerate, jnp.any(rep)
+
+
+def _select(h_lin: Linearize, Gpinv: Array, q_noise: GaussianMixture, r_noise: GaussianMixture,
+            f_mean: Array, x_check: Array, z: Array, t: Array) -> Array:
+    """Eqs 15–17: ``(i*, j*)`` ``(2,)`` int32 from the initial estimate ``x_check``."""
+    v = Gpinv @ (x_check - f_mean)  # eq 15 (projected on the noise subspace)
+    w = z - h_lin(x_check, t)[0]  # eq 16
+    qm = q_noise.means @ Gpinv.T
+    qc = jnp.einsum("ab,kbc,dc->kad", Gpinv, q_noise.covs, Gpinv)
+    lv = _noise_log_weights(q_noise) + jax.vmap(lambda mu, P: gaussian.logpdf(v, mu, P))(qm, qc)
+    lw = _noise_log_weights(r_noise) + jax.vmap(lambda mu, P: gaussian.logpdf(w, mu, P))(
+        r_noise.means, r_noise.covs)
+    lv = jnp.where(q_noise.mask, lv, -jnp.inf)
+    lw = jnp.where(r_noise.mask, lw, -jnp.inf)
+    return jnp.stack([jnp.argmax(lv), jnp.argmax(lw)]).astype(jnp.int32)
+
+
+def _matched_pair(aux: Any) -> Array:
+    """The true pair ``(i, j)`` of ``inputs.aux`` for ``matched``; clear errors at trace time."""
+    if aux is None:
+        raise ValueError(
+            "inputs.aux: the 'matched' filter needs the true active cluster pair (i, j) of every "
+            "step: gmjax.filters.run(filt, zs, StepInputs(t=ts, aux=active)) with active a (T, 2) "
+            "int array (gmjax.models.seed004.simulate_labeled returns it)"
+        )
+    if jnp.shape(aux) != (2,):
+        raise ValueError(
+            f"inputs.aux: the 'matched' filter expects the active pair (i, j) of shape (2,) per step "
+            f"((T, 2) over a run), got shape {jnp.shape(aux)}"
+        )
+    return jnp.asarray(aux, jnp.int32)
+
+
+# ---------------------------------------------------------------------------------------------
+# One step of a bank (module-level pure functions; ``cfg`` holds the static part).
+
+
+class _Static(NamedTuple):
+    """The static (build-time) part of a bank: code and structure, no parameter values."""
+
+    method: str
+    dim: int
+    f_lin: Linearize  # x, t -> (f(x, t), F)
+    h_lin: Linearize  # x, t -> (h(x, t), H)
+    local: LocalFilter  # the Kalman filter of one model M^{ij}
+    Gpinv: Array | None  # (q, d) G^+ of eq 17 (red-* only)
+    ssg_iterations: int
+
+
+def _init(cfg: _Static, params: BankParams, prior: GaussianMixture | None) -> BankState:
+    """The moment-matched prior and, for ``red-ssg``, the steady-state gains from ``params``."""
+    prior = params.model.prior if prior is None else prior
+    if not isinstance(prior, GaussianMixture):
+        raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
+    d, dtype = cfg.dim, params.model.prior.means.dtype
+    mean, cov = (a.astype(dtype) for a in gmm.moments(prior))
+    q_noise, r_noise = _bank_noises(params.model, cfg.method)
+    n_q = q_noise.capacity
+    predicted = gmm.sanitize(GaussianMixture(
+        jnp.exp(_noise_log_weights(q_noise)), jnp.broadcast_to(mean, (n_q, d)),
+        jnp.broadcast_to(cov, (n_q, d, d)), q_noise.mask))
+    ss_gain = ss_cov = None
+    if cfg.method == "red-ssg":  # F and H at t = 1: the model must be time invariant
+        t1 = jnp.ones((), jnp.int32)
+        F1 = cfg.f_lin(jnp.zeros((d,), dtype), t1)[1]
+        H1 = cfg.h_lin(jnp.zeros((d,), dtype), t1)[1]
+        ss_gain, ss_cov = _pair_steady_state_gains(
+            q_noise.covs, r_noise.covs, F1, H1, gmm.cov(params.model.prior), cfg.ssg_iterations)
+    return BankState(mean, cov, predicted, mean, cov, cov, ss_gain, ss_cov)
+
+
+def _predict(cfg: _Static, params: BankParams, state: BankState, t: Array) -> BankState:
+    """Eqs 5–6 for every process cluster, and the preloaded-gain covariance prediction."""
+    q_noise, _ = _bank_noises(params.model, cfg.method)
+    fm, F = cfg.f_lin(state.mean, t)
+    predicted = gs_predict(cfg.local, gmm.from_gaussian(state.mean, state.cov), t, q_noise)
+    mean, cov = gmm.moments(predicted)
+    preload = gaussian.symmetrize(F @ state.preload_cov @ F.T + _average_cov(q_noise))
+    f_cov = gaussian.symmetrize(F @ state.cov @ F.T)
+    return state._replace(mean=mean, cov=cov, predicted=predicted, f_mean=fm, f_cov=f_cov,
+                          preload_cov=preload)
+
+
+def _reduce_full(cfg: _Static, q_noise: GaussianMixture, r_noise: GaussianMixture, state: BankState,
+                 up: Any, z: Array, t: Array) -> tuple[Array, Array, Array, Array]:
+    """``gsf-merge``, ``gsf-remove``, ``red-gsfm``, ``red-gsfr``: reduce the full bank (eqs 10–17).
+
+    Args:
+        up: the :class:`~gmjax.filters.gsf.GSUpdate` of the ``L·J`` models (child ``i J + j``).
+
+    Returns:
+        ``(mean (d,), cov (d, d), x̌ (d,), (i, j) (2,))``.
+    """
+    n_q, n_r, d = q_noise.capacity, r_noise.capacity, cfg.dim
+    mu = up.mixture.weights.reshape(n_q, n_r)  # eq 9 (0 on padded slots)
+    means = up.mixture.means.reshape(n_q, n_r, d)
+    covs = up.mixture.covs.reshape(n_q, n_r, d, d)
+    if cfg.method == "gsf-merge":  # eqs 10-11
+        mean, cov = gmm.moments(up.mixture)
+        return mean, cov, mean, jnp.full((2,), -1, jnp.int32)
+    best = _argmax2(mu)  # eq 12
+    if cfg.method == "gsf-remove":
+        sel, x_check = best, means[best[0], best[1]]
+    else:
+        x_check = _merge(mu, means) if cfg.method == "red-gsfm" else means[best[0], best[1]]
+        sel = _select(cfg.h_lin, cfg.Gpinv, q_noise, r_noise, state.f_mean, x_check, z, t)
+    return means[sel[0], sel[1]], covs[sel[0], sel[1]], x_check, sel  # eqs 13-14
+
+
+def _initial_estimate(cfg: _Static, params: BankParams, q_noise: GaussianMixture,
+                      r_noise: GaussianMixture, state: BankState, z: Array, t: Array,
+                      preload_gain: tuple[Array, Array]) -> tuple[Array, Array, Array]:
+    """``x̌_k`` of ``red-pkg``, ``red-ssg``, ``red-dkg`` (§IV-A 3–5): ``(x̌, degenerate, repaired)``.
+
+    Args:
+        preload_gain: ``(K̄_k (d, m), S̄_k (m, m))`` of the preloaded-gain recursion.
+    """
+    if cfg.method in ("red-pkg", "red-ssg"):
+        if cfg.method == "red-pkg":
+            Kp, Sp = preload_gain
+            shape = (q_noise.capacity, r_noise.capacity)
+            K, S = jnp.broadcast_to(Kp, shape + Kp.shape), jnp.broadcast_to(Sp, shape + Sp.shape)
+        else:
+            K, S = state.ss_gain, state.ss_innovation_cov
+        return _gain_estimate(cfg.h_lin, state.predicted, r_noise, _noise_log_weights(q_noise),
+                              _noise_log_weights(r_noise), K, S, z, t)
+    # red-dkg: one Kalman step on the moment-matched noises from (x̂_{k-1}, P_{k-1})
+    q_mm_mean, q_mm_cov = gmm.moments(params.model.process_noise)
+    kp = cfg.local.init(state.f_mean + q_mm_mean, gaussian.symmetrize(state.f_cov + q_mm_cov))
+    kf, kinfo = cfg.local.update(kp, z, t, *gmm.moments(params.model.measurement_noise))
+    return cfg.local.moments(kf)[0], jnp.zeros((), bool), kinfo.repaired
+
+
+def _reduce_single(cfg: _Static, params: BankParams, q_noise: GaussianMixture,
+                   r_noise: GaussianMixture, state: BankState, z: Array, inputs: StepInputs,
+                   preload_gain: tuple[Array, Array]) -> tuple[Array, ...]:
+    """``matched``, ``kf-mm``, ``red-pkg``, ``red-ssg``, ``red-dkg``: choose ``(i, j)`` (eq 17 for
+    the ``red-*``), then run that one Kalman filter (eqs 7–8).
+
+    Returns:
+        ``(mean, cov, x̌, (i, j), degenerate, repaired)``; ``x̌`` is the posterior mean for
+        ``matched`` and ``kf-mm``.
+    """
+    t = inputs.t
+    degenerate = repaired = jnp.zeros((), bool)
+    x_check = None
+    if cfg.method == "matched":
+        sel = _matched_pair(inputs.aux)
+    elif cfg.method == "kf-mm":
+        sel = jnp.zeros((2,), jnp.int32)
+    else:
+        x_check, degenerate, repaired = _initial_estimate(cfg, params, q_noise, r_noise, state, z, t,
+                                                          preload_gain)
+        sel = _select(cfg.h_lin, cfg.Gpinv, q_noise, r_noise, state.f_mean, x_check, z, t)
+    mean, cov, rep = _one_update(cfg.local, state.predicted, r_noise, sel, z, t)
+    return mean, cov, mean if x_check is None else x_check, sel, degenerate, repaired | rep
+
+
+def _update(cfg: _Static, params: BankParams, state: BankState, z: Array,
+            inputs: StepInputs) -> tuple[BankState, StepInfo]:
+    """The bank (eqs 7–9), the reduction of ``cfg.method`` and the preloaded-gain update."""
+    q_noise, r_noise = _bank_noises(params.model, cfg.method)
+    t = inputs.t
+    z = jnp.asarray(z, state.mean.dtype)
+    missing = is_missing(z)
+    # the full bank of eqs 7-9 (its normaliser is the log-likelihood of every method)
+    up = gs_update(cfg.local, state.predicted, z, t, r_noise)
+    zs = jnp.where(missing, cfg.h_lin(state.mean, t)[0] + gmm.mean(r_noise), z)
+    preload_post, Kp, Sp = _preload_update(cfg.h_lin, state.mean, state.preload_cov,
+                                           _average_cov(r_noise), t)
+    if cfg.method in _FULL_BANK:
+        mean, cov, x_check, sel = _reduce_full(cfg, q_noise, r_noise, state, up, zs, t)
+        degenerate, repaired = up.degenerate, up.repaired
+    else:
+        mean, cov, x_check, sel, degenerate, repaired = _reduce_single(
+            cfg, params, q_noise, r_noise, state, zs, inputs, (Kp, Sp))
+    # predict-only step: the moment-matched prediction for every method
+    mean = jnp.where(missing, state.mean, mean)
+    cov, rep_c = repair_cov(jnp.where(missing, state.cov, cov))
+    sel = jnp.where(missing, jnp.full((2,), -1, jnp.int32), sel)
+    x_check = jnp.where(missing, state.mean, x_check)
+    new = state._replace(mean=mean, cov=cov,
+                         preload_cov=jnp.where(missing, state.preload_cov, preload_post))
+    flags = StepFlags(repaired=(repaired | rep_c) & ~missing, overflow=jnp.zeros((), bool),
+                      degenerate=degenerate & ~missing)
+    info = StepInfo(mean=mean, cov=cov, loglik=up.loglik, n_components=jnp.ones((), jnp.int32),
+                    flags=flags, reduction=None,
+                    extra={"initial": x_check, "active": sel, "missing": missing})
+    return new, info
+
+
+# ---------------------------------------------------------------------------------------------
+# The builder.
+
+
 def build_bank(
     model: StateSpaceModel,
     method: str,
@@ -220,262 +539,67 @@ def build_bank(
 ) -> Filter:
     """Build a linear GSF bank with one of the reductions of seed 004 (see the module docstring).
 
+    Static (build-time) quantities: ``method``; the model's ``f`` and ``h`` (``F``, ``H`` are their
+    Jacobians); ``G^+`` from ``noise_gain`` (``"auto"`` inspects the concrete process-noise
+    covariances of ``model`` once, here); ``ssg_iterations``. Everything numeric is read from
+    ``params`` (:class:`BankParams`) at each call; the Red-SSG steady-state gains are computed
+    from ``params`` in ``init`` and carried in :class:`BankState`.
+
     Args:
-        model: an affine :class:`~gmjax.models.StateSpaceModel` (``F``, ``H`` are the Jacobians of
-            ``f``, ``h``); its GM process and measurement noises are the ``L`` and ``J`` clusters of
-            eqs 3–4 (padded slots allowed); its prior is moment-matched to one Gaussian.
+        model: an affine :class:`~gmjax.models.StateSpaceModel`; its GM process and measurement
+            noises are the ``L`` and ``J`` clusters of eqs 3–4 (padded slots allowed); its prior is
+            moment-matched to one Gaussian. ``model.params`` becomes ``filter.params.model``.
         method: one of :data:`BANK_METHODS`.
         noise_gain: ``G`` ``(d, q)`` with ``v = G v_q`` for the process-noise term of eq 17;
             ``"auto"`` (default) detects it from the covariances (needs concrete arrays),
             ``None`` uses the full ``d``-dimensional density.
-        ssg_iterations: Riccati steps for the steady-state gains of ``red-ssg`` (static).
+        ssg_iterations: Riccati steps for the steady-state gains of ``red-ssg``.
 
     Returns:
-        ``Filter(init, predict, update, moments)``: ``init(prior=None) -> BankState``,
-        ``predict(state, t)``, ``update(state, z, t, active=None) -> (BankState, BankInfo)``
-        (``active``: ``(2,)`` int ``(i, j)`` true clusters, required by ``matched`` only),
-        ``moments(state) -> (mean, cov)``.
+        A :class:`~gmjax.filters.Filter` over :class:`BankState` with :class:`BankParams`.
+        ``update`` reads ``inputs.aux`` (``(2,)`` int true ``(i, j)``) for ``matched`` only. Its
+        ``StepInfo``: ``mean``/``cov`` the reduced posterior, ``loglik`` the log of the eq-9
+        normaliser (0 on a predict-only step), ``n_components = 1``, ``flags.repaired`` (a
+        covariance was not numerically PD), ``flags.degenerate`` (every likelihood of eq 9
+        underflowed: the prior weights ``w^i p^j`` were used), ``flags.overflow`` always False,
+        ``reduction = None`` and ``extra``:
+
+        * ``"initial"``: ``(d,)`` the initial estimate ``x̌_k`` of the active-cluster reduction
+          (for the other methods the posterior mean);
+        * ``"active"``: ``(2,)`` int32 ``(i, j)`` of the kept model; ``(-1, -1)`` for
+          ``gsf-merge`` and on a predict-only step;
+        * ``"missing"``: ``()`` bool, the measurement held a NaN (predict-only step).
 
     Raises:
-        ValueError: unknown ``method``, a bad model or ``noise_gain``.
+        ValueError: unknown ``method``, a bad model, ``noise_gain`` or ``ssg_iterations``; at
+            trace time, ``matched`` without ``inputs.aux`` of shape ``(2,)``.
     """
     if method not in BANK_METHODS:
         raise ValueError(f"method: unknown {method!r}; expected one of {BANK_METHODS}")
-    if not isinstance(ssg_iterations, int) or ssg_iterations < 1:
+    if isinstance(ssg_iterations, bool) or not isinstance(ssg_iterations, int) or ssg_iterations < 1:
         raise ValueError(f"ssg_iterations: must be a positive int, got {ssg_iterations!r}")
     check_model(model)
-    d, m = model.state_dim, model.measurement_dim
-    dtype = model.prior.means.dtype
-    q_noise, r_noise = model.process_noise, model.measurement_noise
-    if method == "kf-mm":
-        q_noise = gmm.from_gaussian(*gmm.moments(q_noise))
-        r_noise = gmm.from_gaussian(*gmm.moments(r_noise))
-    Gpinv = _resolve_noise_gain(noise_gain, q_noise) if method.startswith("red-") else None
-    q_lw, r_lw = _noise_log_weights(q_noise), _noise_log_weights(r_noise)
-    q_means, q_covs = q_noise.means, q_noise.covs
-    r_means, r_covs = r_noise.means, r_noise.covs
-    q_mm_mean, q_mm_cov = gmm.moments(model.process_noise)
-    r_mm_mean, r_mm_cov = gmm.moments(model.measurement_noise)
-    # within-cluster averages for the preloaded gains (Red-PKG)
-    q_bar = jnp.einsum("k,kij->ij", jnp.exp(q_lw), q_covs)
-    r_bar = jnp.einsum("k,kij->ij", jnp.exp(r_lw), r_covs)
-    local = _linearized_filter(_affine_parts(model.f), _affine_parts(model.h))
-    f_lin = _affine_parts(model.f)
-    h_lin = _affine_parts(model.h)
-    L, J = q_means.shape[0], r_means.shape[0]
+    f_lin, h_lin = affine_parts(model.f), affine_parts(model.h)
+    Gpinv = _resolve_noise_gain(noise_gain, model.process_noise) if method.startswith("red-") else None
+    cfg = _Static(method, model.state_dim, f_lin, h_lin, linearized_filter(f_lin, h_lin), Gpinv,
+                  ssg_iterations)
 
-    if method == "red-ssg":
-        t1 = jnp.ones((), jnp.int32)
-        F1 = f_lin(jnp.zeros((d,), dtype), t1)[1]
-        H1 = h_lin(jnp.zeros((d,), dtype), t1)[1]
-        P0 = gmm.cov(model.prior)
-        pair = jax.vmap(jax.vmap(
-            lambda Q, R: steady_state_gains(F1, H1, Q, R, P0, iterations=ssg_iterations), (None, 0)), (0, None))
-        ss_K, ss_S = pair(q_covs, r_covs)  # (L, J, d, m), (L, J, m, m)
-    else:
-        ss_K = ss_S = None
+    def init(params: BankParams, prior: GaussianMixture | None = None, *,
+             key: PRNGKey | None = None) -> BankState:
+        del key
+        return _init(cfg, params, prior)
 
-    def init(prior: GaussianMixture | None = None) -> BankState:
-        prior = model.prior if prior is None else prior
-        if not isinstance(prior, GaussianMixture):
-            raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
-        mean, cov = gmm.moments(prior)
-        mean = mean.astype(dtype)
-        cov = cov.astype(dtype)
-        return BankState(
-            mean, cov, jnp.broadcast_to(mean, (L, d)), jnp.broadcast_to(cov, (L, d, d)), mean, cov, cov
-        )
+    def predict(params: BankParams, state: BankState, inputs: StepInputs, *,
+                key: PRNGKey | None = None) -> BankState:
+        del key
+        return _predict(cfg, params, state, inputs.t)
 
-    def predict(state: BankState, t: Array) -> BankState:
-        fm, F = f_lin(state.mean, t)
-        x0 = local.init(state.mean, state.cov)
-        one = lambda qm, qP: local.moments(local.predict(x0, t, qm, qP))  # noqa: E731
-        means, covs = jax.vmap(one)(q_means, q_covs)
-        mix = GaussianMixture(jnp.exp(q_lw), means, covs, q_noise.mask)
-        mean, cov = gmm.moments(mix)
-        preload = gaussian.symmetrize(F @ state.preload_cov @ F.T + q_bar)
-        f_cov = gaussian.symmetrize(F @ state.cov @ F.T)
-        return BankState(mean, cov, means, covs, fm, f_cov, preload)
+    def update(params: BankParams, state: BankState, z: Array, inputs: StepInputs, *,
+               key: PRNGKey | None = None) -> tuple[BankState, StepInfo]:
+        del key
+        return _update(cfg, params, state, z, inputs)
 
-    def _one_update(state: BankState, i, j, z, t):
-        st = local.init(state.pred_means[i], state.pred_covs[i])
-        new, info = local.update(st, z, t, r_means[j], r_covs[j])
-        mean, cov = local.moments(new)
-        return mean, cov, info.loglik, info.repaired
-
-    def _full_bank(state: BankState, z, t):
-        ii, jj = jnp.meshgrid(jnp.arange(L), jnp.arange(J), indexing="ij")
-        means, covs, ll, rep = jax.vmap(jax.vmap(lambda i, j: _one_update(state, i, j, z, t)))(ii, jj)
-        return means, covs, ll, rep  # (L, J, d), (L, J, d, d), (L, J), (L, J)
-
-    def _weights(ll):
-        """Eq 9 in the log domain; ``(log mu (L, J), degenerate)``."""
-        log_prior = q_lw[:, None] + r_lw[None, :]
-        log_w = log_prior + ll
-        norm = logsumexp(log_w)
-        degenerate = ~jnp.isfinite(norm)
-        log_w = jnp.where(degenerate, log_prior, log_w - jnp.where(degenerate, 0.0, norm))
-        return log_w, degenerate
-
-    def _merge(log_mu, means):
-        mu = jnp.where(jnp.isfinite(log_mu), jnp.exp(log_mu), 0.0)
-        return jnp.einsum("ij,ijd->d", mu, means)
-
-    def _argmax2(score):
-        flat = jnp.argmax(score.reshape(-1))
-        return jnp.stack([flat // J, flat % J]).astype(jnp.int32)
-
-    def _gain_estimate(state, z, t, K, S):
-        """GSF-merge mean with given gains: ``K``, ``S`` of shape ``(L, J, d, m)``, ``(L, J, m, m)``."""
-
-        def one(i, j):
-            xp = state.pred_means[i]
-            zh = h_lin(xp, t)[0] + r_means[j]
-            y = z - zh
-            Lc = safe_chol(S[i, j])
-            r = jax.scipy.linalg.solve_triangular(Lc.factor, y, lower=True)
-            ll = -0.5 * (m * jnp.log(2 * jnp.pi) + r @ r) - jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lc.factor))))
-            return xp + K[i, j] @ y, ll, Lc.repaired
-
-        ii, jj = jnp.meshgrid(jnp.arange(L), jnp.arange(J), indexing="ij")
-        xs, ll, rep = jax.vmap(jax.vmap(one))(ii, jj)
-        log_mu, degenerate = _weights(ll)
-        return _merge(log_mu, xs), degenerate, jnp.any(rep)
-
-    def _select(state, x_check, z, t):
-        """Eqs 15–17: ``(i*, j*)`` from the initial estimate ``x_check``."""
-        v = Gpinv @ (x_check - state.f_mean)  # eq 15 (projected on the noise subspace)
-        w = z - h_lin(x_check, t)[0]  # eq 16
-        qm = q_means @ Gpinv.T
-        qc = jnp.einsum("ab,kbc,dc->kad", Gpinv, q_covs, Gpinv)
-        lv = q_lw + jax.vmap(lambda mu, P: gaussian.logpdf(v, mu, P))(qm, qc)
-        lw = r_lw + jax.vmap(lambda mu, P: gaussian.logpdf(w, mu, P))(r_means, r_covs)
-        lv = jnp.where(q_noise.mask, lv, -jnp.inf)
-        lw = jnp.where(r_noise.mask, lw, -jnp.inf)
-        return jnp.stack([jnp.argmax(lv), jnp.argmax(lw)]).astype(jnp.int32)
-
-    def update(state: BankState, z: Array, t: Array, active: Array | None = None):
-        z = jnp.asarray(z, dtype)
-        missing = is_missing(z)
-        zs = jnp.where(missing, h_lin(state.mean, t)[0] + gmm.mean(r_noise), z)
-        # the preloaded-gain covariance recursion (data independent)
-        _, Hc = h_lin(state.mean, t)
-        Sp = gaussian.symmetrize(Hc @ state.preload_cov @ Hc.T + r_bar)
-        Kp = kalman_gain(state.preload_cov @ Hc.T, safe_chol(Sp).factor)
-        Ap = jnp.eye(d, dtype=dtype) - Kp @ Hc
-        preload_post = gaussian.symmetrize(Ap @ state.preload_cov @ Ap.T + Kp @ r_bar @ Kp.T)
-        degenerate = jnp.zeros((), bool)
-        repaired = jnp.zeros((), bool)
-
-        if method in ("gsf-merge", "gsf-remove", "red-gsfm", "red-gsfr"):
-            means, covs, ll, rep = _full_bank(state, zs, t)
-            log_mu, degenerate = _weights(ll)
-            repaired = jnp.any(rep)
-            if method == "gsf-merge":  # eqs 10-11
-                mu = jnp.where(jnp.isfinite(log_mu), jnp.exp(log_mu), 0.0)
-                mix = GaussianMixture(mu.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d),
-                                      jnp.isfinite(log_mu).reshape(-1))
-                mean, cov = gmm.moments(mix)
-                x_check, sel = mean, jnp.full((2,), -1, jnp.int32)
-            else:
-                best = _argmax2(log_mu)  # eq 12
-                if method == "gsf-remove":
-                    sel = best
-                    x_check = means[best[0], best[1]]
-                else:
-                    x_check = _merge(log_mu, means) if method == "red-gsfm" else means[best[0], best[1]]
-                    sel = _select(state, x_check, zs, t)
-                mean, cov = means[sel[0], sel[1]], covs[sel[0], sel[1]]  # eqs 13-14
-        else:
-            if method == "matched":
-                if active is None:
-                    raise ValueError(
-                        "active: the 'matched' filter needs the true active clusters, "
-                        "update(state, z, t, active=(i, j)) / run_bank(..., active=(T, 2) array)"
-                    )
-                sel = jnp.asarray(active, jnp.int32).reshape(2)
-                x_check = None
-            elif method == "kf-mm":
-                sel = jnp.zeros((2,), jnp.int32)
-                x_check = None
-            elif method == "red-pkg":
-                K = jnp.broadcast_to(Kp, (L, J, d, m))
-                S = jnp.broadcast_to(Sp, (L, J, m, m))
-                x_check, degenerate, rep = _gain_estimate(state, zs, t, K, S)
-                repaired = repaired | rep
-                sel = _select(state, x_check, zs, t)
-            elif method == "red-ssg":
-                x_check, degenerate, rep = _gain_estimate(state, zs, t, ss_K, ss_S)
-                repaired = repaired | rep
-                sel = _select(state, x_check, zs, t)
-            else:  # red-dkg: one Kalman step on the moment-matched noises from (x̂_{k-1}, P_{k-1})
-                kp_cov = gaussian.symmetrize(state.f_cov + q_mm_cov)
-                kf, kinfo = local.update(local.init(state.f_mean + q_mm_mean, kp_cov), zs, t, r_mm_mean, r_mm_cov)
-                x_check = local.moments(kf)[0]
-                repaired = repaired | kinfo.repaired
-                sel = _select(state, x_check, zs, t)
-            mean, cov, _, rep = _one_update(state, sel[0], sel[1], zs, t)
-            repaired = repaired | rep
-            if x_check is None:
-                x_check = mean
-
-        # predict-only step: the moment-matched prediction for every method
-        mean = jnp.where(missing, state.mean, mean)
-        cov = jnp.where(missing, state.cov, cov)
-        cov, rep_c = repair_cov(cov)
-        preload_post = jnp.where(missing, state.preload_cov, preload_post)
-        sel = jnp.where(missing, jnp.full((2,), -1, jnp.int32), sel)
-        x_check = jnp.where(missing, state.mean, x_check)
-        new = BankState(mean, cov, state.pred_means, state.pred_covs, state.f_mean, state.f_cov, preload_post)
-        info = BankInfo(
-            mean=mean, cov=cov, initial=x_check, active=sel,
-            repaired=(repaired | rep_c) & ~missing, degenerate=degenerate & ~missing, missing=missing,
-        )
-        return new, info
-
-    def moments(state: BankState) -> tuple[Array, Array]:
-        return state.mean, state.cov
-
-    return Filter(init, predict, update, moments)
-
-
-def run_bank(
-    filter: Filter,
-    zs: Array,
-    ts: Array | None = None,
-    *,
-    active: Array | None = None,
-    prior: GaussianMixture | None = None,
-) -> tuple[BankState, BankInfo]:
-    """Run a bank filter over ``zs`` ``(T, m)`` with ``lax.scan`` (like :func:`gmjax.filters.run`).
-
-    Args:
-        filter: from :func:`build_bank`.
-        zs: ``(T, m)`` measurements (a row with a NaN is a predict-only step).
-        ts: ``(T,)`` times, default ``1..T``.
-        active: ``(T, 2)`` int true clusters ``(i, j)`` per step; required by ``matched``,
-            ignored by the other methods.
-        prior: prior mixture (default the model's).
-
-    Returns:
-        ``(states, infos)`` with a leading ``T`` axis.
-    """
-    zs, ts = check_sequence(zs, ts)
-    T = zs.shape[0]
-    if active is not None:
-        active = jnp.asarray(active)
-        if active.shape != (T, 2):
-            raise ValueError(f"active: expected shape ({T}, 2), got {active.shape}")
-    state0 = filter.init(prior)
-
-    def step(state, inp):
-        z, t, a = inp
-        state = filter.predict(state, t)
-        state, info = filter.update(state, z, t, active=a)
-        return state, (state, info)
-
-    _, (states, infos) = jax.lax.scan(step, state0, (zs, ts, active))
-    return states, infos
+    return Filter(init, predict, update, BankParams(model.params))
 
 
 def sweep_errors(
@@ -492,9 +616,10 @@ def sweep_errors(
     """Position errors of one bank method over a grid of scenarios × Monte Carlo runs.
 
     ``vmap`` over the leading axis ``P`` of ``params`` (e.g. the noise-scale ``c`` of each KL
-    point), ``vmap`` over the ``N`` run keys, ``lax.scan`` over time. Every method run with the
-    same ``keys`` sees the same simulated data (common random numbers). Wrap it in ``jax.jit``
-    with ``method``, ``make_model``, ``simulate`` static (one compiled kernel per method).
+    point), ``vmap`` over the ``N`` run keys, ``lax.scan`` over time (:func:`gmjax.filters.run`,
+    the true active clusters passed as ``inputs.aux``). Every method run with the same ``keys``
+    sees the same simulated data (common random numbers). Wrap it in ``jax.jit`` with ``method``,
+    ``make_model``, ``simulate`` static (one compiled kernel per method).
 
     Args:
         method: one of :data:`BANK_METHODS`.
@@ -516,9 +641,11 @@ def sweep_errors(
         filt = build_bank(make_model(p), method, noise_gain=noise_gain, **bank_kwargs)
 
         def one_run(key):
-            run = simulate(p, key)
-            _, infos = run_bank(filt, run.zs, active=run.active)
-            return infos.mean[:, dims] - run.xs[1:, dims]
+            sim = simulate(p, key)
+            n_steps = sim.zs.shape[0]
+            inputs = StepInputs(t=jnp.arange(1, n_steps + 1, dtype=jnp.int32), aux=sim.active)
+            _, infos = run(filt, sim.zs, inputs)
+            return infos.mean[:, dims] - sim.xs[1:, dims]
 
         return jax.vmap(one_run)(keys)
 

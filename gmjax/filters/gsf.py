@@ -10,23 +10,26 @@ by the reducer. The point estimate and covariance (eqs 17–18) are the moments 
 mixture, before reduction.
 
 Overflow policy: the reducer's output is fitted to capacity ``K``; if more than ``K`` components
-survive, the ``K`` heaviest are kept, renormalised, and ``GSFInfo.overflow`` is set. With
-``reducer=None`` nothing is merged: the ``K`` heaviest are kept (overflow flagged when anything is
-dropped), so a capacity of at least ``K_0 (L J)^T`` gives the exact GSF over ``T`` steps.
+survive, the ``K`` heaviest are kept, renormalised, and ``StepInfo.flags.overflow`` is set. With
+``reducer=None`` the reducer is :class:`gmjax.reduction.PruneTop` with ``num_out=K`` (nothing is
+merged: the ``K`` heaviest are kept, and the step is flagged when anything is dropped), so a capacity
+of at least ``K_0 (L J)^T`` gives the exact GSF over ``T`` steps.
 
-Stateful reducers (e.g. :class:`gmjax.reduction.GMRCM`, whose low-weight rule needs per-slot
-history) are recognised by their ``init_state(capacity)`` and ``step(gm, state, *, key)`` methods:
-the filter carries the state aligned with the posterior's ``K`` slots, every predicted / updated
-child inherits its parent's entries, and the reducer must return exactly ``K`` slots.
+Reducers follow the one contract (:class:`gmjax.reduction.Reducer`): the filter carries the reducer
+state aligned with the posterior's ``K`` slots, every predicted / updated child inherits its
+parent's entries (:func:`inherit`), and a stateful reducer (e.g. :class:`gmjax.reduction.GMRCM`)
+must return exactly ``K`` slots.
 
-Time indexing follows :func:`gmjax.filters.run`: step ``k`` predicts with ``f(., t_k)`` and updates
-with ``z_k`` through ``h(., t_k)``. A measurement holding a NaN is a predict-only step (the ``J``
-measurement-noise copies collapse to one).
+The two Gaussian-sum kernels, :func:`gs_predict` and :func:`gs_update`, are shared with the IMM of
+Gaussian sum filters, the AGSSCKF and the seed 004 bank.
+
+Time indexing follows :func:`gmjax.filters.run`. A measurement holding a NaN is a predict-only step
+(the ``J`` measurement-noise copies collapse to one).
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,78 +38,60 @@ from jax.scipy.special import logsumexp
 from gmjax import metrics
 from gmjax import mixture as gmm
 from gmjax._types import Array, PRNGKey
-from gmjax.filters._core import Filter, LocalFilter, check_model, is_missing
+from gmjax.filters._core import LocalFilter, check_model, is_missing
+from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
+from gmjax.filters.local import local_filter_for
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import StateSpaceModel
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.models.base import ModelParams, StateSpaceModel
 
-__all__ = ["GSFState", "GSFInfo", "build_gsf", "local_filter_for", "fit_capacity"]
+__all__ = [
+    "GSFState",
+    "GSFParams",
+    "build_gsf",
+    "local_filter_for",
+    "fit_capacity",
+    "gs_predict",
+    "gs_update",
+    "inherit",
+    "check_reducer",
+]
 
 
 class GSFState(NamedTuple):
     """State of a Gaussian sum filter.
 
     Attributes:
-        mixture: the posterior (after reduction: capacity ``K``; after a bare ``predict``:
-            capacity ``K·L``).
-        key: PRNG key consumed by randomised reducers.
-        reducer_state: a stateful reducer's per-slot state aligned with ``mixture`` (else ``None``).
+        mixture: the posterior (after ``update``: capacity ``K``; after ``predict``: ``K·L``).
+        reducer_state: the reducer's state aligned with ``mixture``'s slots
+            (:class:`~gmjax.reduction.EmptyState` for stateless reducers).
     """
 
     mixture: GaussianMixture
-    key: PRNGKey
-    reducer_state: Any = None
+    reducer_state: Any
 
 
-class GSFInfo(NamedTuple):
-    """Per-step report of a Gaussian sum filter update.
+class GSFParams(NamedTuple):
+    """Parameters of :func:`build_gsf`: the model's noises and prior, and the reducer config (whose
+    thresholds are leaves: differentiate or tune them here)."""
 
-    Attributes:
-        mean: ``(d,)`` point estimate (eq 17) of the updated mixture.
-        cov: ``(d, d)`` its covariance (eq 18).
-        loglik: ``()`` ``log p(z_k | z_{1:k-1})`` under the filter's mixture.
-        n_updated: ``()`` live components after the update, before reduction (``<= K·L·J``).
-        n_components: ``()`` live components after reduction (``<= K``).
-        ise: ``()`` ISE between the updated mixture and the reduced one (seed 000 eq 42).
-        reduction: the reducer's :class:`~gmjax.reduction.ReductionInfo` (``cost`` is its own
-            cost, e.g. PCM's EISE).
-        overflow: ``()`` bool, the reducer left more than ``K`` components (heaviest kept).
-        repaired: ``()`` bool, a local filter repaired a covariance this step.
-        degenerate: ``()`` bool, every component's likelihood underflowed; the weights were left
-            at their predicted values (``loglik`` is then ``-inf``).
+    model: ModelParams
+    reducer: Any
+
+
+def check_reducer(reducer: Any) -> Any:
+    """Validate a reducer at the API boundary (``None`` stays ``None``).
+
+    Raises:
+        ValueError: when ``reducer`` does not follow :class:`gmjax.reduction.Reducer`.
     """
-
-    mean: Array
-    cov: Array
-    loglik: Array
-    n_updated: Array
-    n_components: Array
-    ise: Array
-    reduction: ReductionInfo
-    overflow: Array
-    repaired: Array
-    degenerate: Array
-
-
-Reducer = Callable[..., tuple[GaussianMixture, ReductionInfo]]
-
-
-def local_filter_for(model: StateSpaceModel, name: str, **kwargs: Any) -> LocalFilter:
-    """The component-level filter ``name`` (``ekf``, ``ukf``, ``ckf``, ``sckf``, ``ghkf``, ``sgkf``)
-    built from the model's ``f`` and ``h``."""
-    from gmjax.filters import kalman, sigma
-
-    builders = {
-        "ekf": lambda: kalman.local_ekf(model.f, model.h, model.f_jacobian, model.h_jacobian),
-        "ukf": lambda: sigma.local_ukf(model.f, model.h, **kwargs),
-        "ckf": lambda: sigma.local_ckf(model.f, model.h),
-        "sckf": lambda: sigma.local_sckf(model.f, model.h),
-        "ghkf": lambda: sigma.local_ghkf(model.f, model.h, **kwargs),
-        "sgkf": lambda: sigma.local_sgkf(model.f, model.h, **kwargs),
-    }
-    if name not in builders:
-        raise ValueError(f"local: unknown local filter {name!r}; expected one of {sorted(builders)}")
-    return builders[name]()
+    if reducer is None:
+        return None
+    if not (callable(getattr(reducer, "init", None)) and callable(getattr(reducer, "reduce", None))):
+        raise ValueError(
+            f"reducer: expected a gmjax.reduction reducer config with init(capacity) and "
+            f"reduce(gm, state, *, key) (e.g. reduction.Runnalls(num_out=8)), got {reducer!r}"
+        )
+    return reducer
 
 
 def fit_capacity(gm: GaussianMixture, capacity: int) -> tuple[GaussianMixture, Array]:
@@ -122,154 +107,185 @@ def fit_capacity(gm: GaussianMixture, capacity: int) -> tuple[GaussianMixture, A
     return kept, overflow
 
 
-def _truncate(gm: GaussianMixture, *, key: PRNGKey | None = None, capacity: int) -> tuple[GaussianMixture, ReductionInfo]:
-    """No reduction: keep the ``capacity`` heaviest components (labels: output slot or -1)."""
-    del key
-    kept, overflow = fit_capacity(gm, capacity)
-    order = jnp.argsort(-jnp.where(gm.mask, gm.weights, -jnp.inf), stable=True)
-    rank = jnp.zeros(gm.capacity, jnp.int32).at[order].set(jnp.arange(gm.capacity, dtype=jnp.int32))
-    labels = jnp.where(gm.mask & (rank < capacity), rank, -1)
-    dropped = jnp.sum(jnp.where(gm.mask & (rank >= capacity), gm.weights, 0.0))
-    return kept, make_info(gm, kept, labels, pruned_mass=dropped, overflow=overflow)
-
-
-def _is_stateful(reducer: Any) -> bool:
-    return callable(getattr(reducer, "init_state", None)) and callable(getattr(reducer, "step", None))
-
-
-def _inherit(state: Any, n_children: int) -> Any:
+def inherit(state: Any, n_children: int) -> Any:
     """Repeat every slot's entries for its ``n_children`` children (slot ``i`` -> ``i*n .. i*n+n-1``)."""
     return jax.tree_util.tree_map(lambda a: jnp.repeat(a, n_children, axis=0), state)
 
 
-def _noise_parts(noise: GaussianMixture) -> tuple[Array, Array, Array, Array]:
-    """``(log weights, means, covs, mask)`` of a noise mixture (weights normalised)."""
+def _noise_log_weights(noise: GaussianMixture) -> Array:
+    """Normalised log weights ``(L,)`` of a noise mixture."""
     log_w = gmm.log_weights(noise)
-    log_w = log_w - logsumexp(log_w)
-    return log_w, noise.means, noise.covs, noise.mask
+    return log_w - logsumexp(log_w)
+
+
+def gs_predict(local: LocalFilter, gm: GaussianMixture, t: Array, noise: GaussianMixture) -> GaussianMixture:
+    """Gaussian-sum prediction: every component ``i`` × every noise component ``l`` (seed 000 eqs 4–8).
+
+    Returns:
+        The ``K·L`` predicted components (child ``i*L + l``), weights ``alpha_i gamma_l``.
+    """
+
+    def one(mean, cov, qm, qP):
+        return local.moments(local.predict(local.init(mean, cov), t, qm, qP))
+
+    pair = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, None, None))
+    means, covs = pair(gm.means, gm.covs, noise.means, noise.covs)  # (K, L, d), (K, L, d, d)
+    log_w = gmm.log_weights(gm)[:, None] + _noise_log_weights(noise)[None, :]
+    mask = gm.mask[:, None] & noise.mask[None, :]
+    d = gm.dim
+    return gmm.sanitize(GaussianMixture(
+        jnp.exp(log_w).reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1)
+    ))
+
+
+class GSUpdate(NamedTuple):
+    """What :func:`gs_update` returns: the ``K·J`` updated components and the step's diagnostics."""
+
+    mixture: GaussianMixture
+    loglik: Array  # () log p(z | past); 0 on a predict-only step
+    degenerate: Array  # () every likelihood underflowed; predicted weights kept
+    repaired: Array  # () a local update repaired a covariance
+    missing: Array  # () the measurement held a NaN
+
+
+def gs_update(local: LocalFilter, gm: GaussianMixture, z: Array, t: Array, noise: GaussianMixture) -> GSUpdate:
+    """Gaussian-sum update: every component × every measurement-noise component ``j``
+    (seed 000 eqs 9–16), weights normalised in the log domain; child ``i*J + j``.
+
+    On a predict-only step (``z`` holds a NaN) the ``J`` copies collapse to the first. If every
+    likelihood underflows the predicted weights are kept and ``degenerate`` is set.
+    """
+    z = jnp.asarray(z)
+    missing = is_missing(z)
+
+    def one(mean, cov, rm, rP):
+        new, info = local.update(local.init(mean, cov), z, t, rm, rP)
+        m, P = local.moments(new)
+        return m, P, info.loglik, info.repaired
+
+    pair = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, None, None))
+    means, covs, loglik, repaired = pair(gm.means, gm.covs, noise.means, noise.covs)  # (K, J, ...)
+    first_only = jnp.arange(noise.capacity) == 0
+    j_mask = jnp.where(missing, first_only, noise.mask)
+    j_logw = jnp.where(missing, 0.0, _noise_log_weights(noise))
+    mask = gm.mask[:, None] & j_mask[None, :]
+    log_prior = jnp.where(mask, gmm.log_weights(gm)[:, None] + j_logw[None, :], -jnp.inf)
+    log_w = jnp.where(mask, log_prior + jnp.where(missing, 0.0, loglik), -jnp.inf)
+    log_norm = logsumexp(log_w)
+    degenerate = ~jnp.isfinite(log_norm)
+    log_w = jnp.where(degenerate, log_prior, log_w)
+    log_w_norm = jnp.where(degenerate, logsumexp(log_prior), log_norm)
+    weights = jnp.where(mask, jnp.exp(log_w - log_w_norm), 0.0)
+    d = gm.dim
+    full = gmm.sanitize(GaussianMixture(
+        weights.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1)
+    ))
+    return GSUpdate(full, jnp.where(missing, 0.0, log_norm), degenerate,
+                    jnp.any(repaired & mask), missing)
+
+
+def reduce_to_capacity(reducer: Any, gm: GaussianMixture, state: Any, capacity: int, *,
+                       key: PRNGKey | None) -> tuple[GaussianMixture, Any, Any, Array]:
+    """Call ``reducer.reduce`` and fit the result to ``capacity`` slots.
+
+    Returns:
+        ``(reduced, new_state, ReductionInfo, overflow)``.
+
+    Raises:
+        ValueError: a stateful reducer whose output capacity is not ``capacity`` (its state could
+            not stay aligned with the slots).
+    """
+    out, new_state, info = reducer.reduce(gm, state, key=key)
+    if jax.tree_util.tree_leaves(new_state) and out.capacity != capacity:
+        raise ValueError(
+            f"reducer: a stateful reducer must return exactly capacity={capacity} slots "
+            f"(got {out.capacity}); configure its output capacity"
+        )
+    out, overflow = fit_capacity(out, capacity)
+    return out, new_state, info, overflow | info.overflow
+
+
+def check_prior(prior: Any, capacity: int) -> GaussianMixture:
+    """Validate a prior mixture against a filter capacity and fit it (normalised) to ``capacity``."""
+    if not isinstance(prior, GaussianMixture):
+        raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
+    n_live = gmm.n_active(prior)
+    if not isinstance(n_live, jax.core.Tracer) and int(n_live) > capacity:
+        raise ValueError(f"prior: {int(n_live)} live components exceed the filter capacity {capacity}")
+    return fit_capacity(gmm.normalize(prior), capacity)[0]
 
 
 def build_gsf(
     model: StateSpaceModel,
     local: LocalFilter | str = "ekf",
-    reducer: Reducer | None = None,
+    reducer: Any = None,
     capacity: int = 16,
     *,
     track_ise: bool = True,
 ) -> Filter:
-    """Build a Gaussian sum filter (a :class:`~gmjax.filters.Filter`).
+    """Build a Gaussian sum filter.
 
     Args:
-        model: the state-space model; its GM process/measurement noises and prior are used as given.
-        local: a :class:`LocalFilter` or the name of one (see :func:`local_filter_for`).
-        reducer: any ``reducer(gm, *, key) -> (gm, ReductionInfo)`` (a
-            :mod:`gmjax.reduction` config or function); ``None`` keeps the heaviest ``capacity``.
+        model: the state-space model; its GM process/measurement noises and prior are the defaults
+            of ``params.model``.
+        local: a :class:`LocalFilter` or the name of one (see :func:`gmjax.filters.local.local_filter_for`).
+        reducer: a :class:`gmjax.reduction.Reducer` config (``params.reducer``); ``None`` keeps the
+            heaviest ``capacity`` (:class:`~gmjax.reduction.PruneTop`).
         capacity: ``K``, the posterior's slots (static).
-        track_ise: compute the ISE of each reduction (``O((K L J)^2)``); off gives ``ise = 0``.
+        track_ise: compute the ISE of each reduction (``O((K L J)^2)``) into ``extra["ise"]``.
 
     Returns:
-        ``Filter(init, predict, update, moments)``: ``init(prior=None, *, key=None)`` (the prior is
-        fitted to ``capacity``; a prior with more live components than ``capacity`` is an error),
-        ``predict(state, t)``, ``update(state, z, t) -> (state, GSFInfo)``, ``moments(state)``.
+        A :class:`~gmjax.filters.Filter` over :class:`GSFState` with :class:`GSFParams`. Its
+        ``StepInfo`` reports the moments of the updated mixture (eqs 17–18), the reducer's
+        ``ReductionInfo``, and ``extra = {"n_updated": live components before reduction,
+        "ise": ISE of the reduction (0 without ``track_ise``)}``.
+
+    Raises:
+        ValueError: a bad model, local filter, reducer or capacity; at ``init``, a prior with more
+            live components than ``capacity``.
     """
+    from gmjax.reduction import PruneTop
+
     check_model(model)
     if isinstance(local, str):
         local = local_filter_for(model, local)
-    if not isinstance(capacity, int) or capacity < 1:
+    if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
         raise ValueError(f"capacity: must be a positive int, got {capacity!r}")
-    q_logw, q_means, q_covs, q_mask = _noise_parts(model.process_noise)
-    r_logw, r_means, r_covs, r_mask = _noise_parts(model.measurement_noise)
-    stateful = _is_stateful(reducer)
-    if reducer is None:
-        reduce = lambda gm, state, *, key: (*_truncate(gm, key=key, capacity=capacity), None)  # noqa: E731
-    elif stateful:
-        def reduce(gm, state, *, key):
-            out, new_state, info = reducer.step(gm, state, key=key)
-            if out.capacity != capacity:
-                raise ValueError(
-                    f"reducer: a stateful reducer must return exactly capacity={capacity} slots "
-                    f"(got {out.capacity}); configure its output capacity"
-                )
-            return out, info, new_state
-    else:
-        reduce = lambda gm, state, *, key: (*reducer(gm, key=key), None)  # noqa: E731
+    truncate_only = check_reducer(reducer) is None  # dropping anything is then an overflow
+    if truncate_only:
+        reducer = PruneTop(num_out=capacity, capacity=capacity)
     n_q, n_r = model.process_noise.capacity, model.measurement_noise.capacity
 
-    def init(prior: GaussianMixture | None = None, *, key: PRNGKey | None = None) -> GSFState:
-        prior = model.prior if prior is None else prior
-        if not isinstance(prior, GaussianMixture):
-            raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
-        n_live = gmm.n_active(prior)
-        if not isinstance(n_live, jax.core.Tracer) and int(n_live) > capacity:
-            raise ValueError(f"prior: {int(n_live)} live components exceed the filter capacity {capacity}")
-        fitted, _ = fit_capacity(gmm.normalize(prior), capacity)
-        rstate = reducer.init_state(capacity) if stateful else None
-        return GSFState(fitted, jax.random.key(0) if key is None else key, rstate)
+    def init(params: GSFParams, prior: GaussianMixture | None = None, *,
+             key: PRNGKey | None = None) -> GSFState:
+        del key
+        fitted = check_prior(params.model.prior if prior is None else prior, capacity)
+        return GSFState(fitted, params.reducer.init(capacity))
 
-    def predict(state: GSFState, t: Array) -> GSFState:
-        gm = state.mixture
+    def predict(params: GSFParams, state: GSFState, inputs: StepInputs, *,
+                key: PRNGKey | None = None) -> GSFState:
+        del key
+        predicted = gs_predict(local, state.mixture, inputs.t, params.model.process_noise)
+        return GSFState(predicted, inherit(state.reducer_state, n_q))
 
-        def one(mean, cov, qm, qP):
-            return local.moments(local.predict(local.init(mean, cov), t, qm, qP))
-
-        pair = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, None, None))
-        means, covs = pair(gm.means, gm.covs, q_means, q_covs)  # (K, L, d), (K, L, d, d)
-        log_w = gmm.log_weights(gm)[:, None] + q_logw[None, :]
-        mask = gm.mask[:, None] & q_mask[None, :]
-        d = gm.dim
-        flat = GaussianMixture(
-            jnp.exp(log_w).reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1)
-        )
-        return GSFState(gmm.sanitize(flat), state.key, _inherit(state.reducer_state, n_q))
-
-    def update(state: GSFState, z: Array, t: Array) -> tuple[GSFState, GSFInfo]:
-        gm = state.mixture
-        z = jnp.asarray(z)
-        missing = is_missing(z)
-
-        def one(mean, cov, rm, rP):
-            new, info = local.update(local.init(mean, cov), z, t, rm, rP)
-            m, P = local.moments(new)
-            return m, P, info.loglik, info.repaired
-
-        pair = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, None, None))
-        means, covs, loglik, repaired = pair(gm.means, gm.covs, r_means, r_covs)  # (KL, J, ...)
-        first_only = jnp.arange(r_mask.shape[0]) == 0
-        j_mask = jnp.where(missing, first_only, r_mask)
-        j_logw = jnp.where(missing, 0.0, r_logw)
-        mask = gm.mask[:, None] & j_mask[None, :]
-        log_prior = jnp.where(mask, gmm.log_weights(gm)[:, None] + j_logw[None, :], -jnp.inf)
-        log_w = jnp.where(mask, log_prior + jnp.where(missing, 0.0, loglik), -jnp.inf)
-        log_norm = logsumexp(log_w)
-        # every likelihood underflowed (an extreme outlier): keep the predicted weights, flag it
-        degenerate = ~jnp.isfinite(log_norm)
-        log_w = jnp.where(degenerate, log_prior, log_w)
-        log_w_norm = jnp.where(degenerate, logsumexp(log_prior), log_norm)
-        weights = jnp.where(mask, jnp.exp(log_w - log_w_norm), 0.0)
-        d = gm.dim
-        full = gmm.sanitize(
-            GaussianMixture(weights.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1))
-        )
-        key, sub = jax.random.split(state.key)
-        reduced, rinfo, rstate = reduce(full, _inherit(state.reducer_state, n_r), key=sub)
-        reduced, overflow = fit_capacity(reduced, capacity)
-        mean, cov = gmm.moments(full)
-        ise = metrics.ise(full, reduced) if track_ise else jnp.zeros((), weights.dtype)
-        info = GSFInfo(
+    def update(params: GSFParams, state: GSFState, z: Array, inputs: StepInputs, *,
+               key: PRNGKey | None = None) -> tuple[GSFState, StepInfo]:
+        up = gs_update(local, state.mixture, z, inputs.t, params.model.measurement_noise)
+        reduced, rstate, rinfo, overflow = reduce_to_capacity(
+            params.reducer, up.mixture, inherit(state.reducer_state, n_r), capacity, key=key)
+        if truncate_only:
+            overflow = overflow | (rinfo.n_in > capacity)
+        mean, cov = gmm.moments(up.mixture)
+        ise = metrics.ise(up.mixture, reduced) if track_ise else jnp.zeros((), mean.dtype)
+        info = StepInfo(
             mean=mean,
             cov=cov,
-            loglik=jnp.where(missing, 0.0, log_norm),
-            n_updated=gmm.n_active(full),
+            loglik=up.loglik,
             n_components=gmm.n_active(reduced),
-            ise=ise,
+            flags=StepFlags(up.repaired, overflow, up.degenerate),
             reduction=rinfo,
-            overflow=overflow | rinfo.overflow,
-            repaired=jnp.any(repaired & mask),
-            degenerate=degenerate,
+            extra={"n_updated": gmm.n_active(up.mixture), "ise": ise},
         )
-        return GSFState(reduced, key, rstate), info
+        return GSFState(reduced, rstate), info
 
-    def moments(state: GSFState) -> tuple[Array, Array]:
-        return gmm.moments(state.mixture)
-
-    return Filter(init, predict, update, moments)
+    return Filter(init, predict, update, GSFParams(model.params, reducer))

@@ -11,6 +11,12 @@ Blom & Bar-Shalom (1988), in FilterPy's ``IMMEstimator`` order. With Markov tran
 * **update**: every model updates with its own ``h`` and measurement noise, giving ``L_j``;
   ``mu_j = c_j L_j / sum_l c_l L_l`` and the step log-likelihood is ``log sum_j c_j L_j``.
 
+Both builders follow the one filter contract (:class:`gmjax.filters.Filter`): the numbers — every
+model's noises and prior, the transition matrix, the initial model probabilities (and, for
+:func:`build_imm_gsf`, the reducer config) — live in a params pytree (:class:`IMMParams`,
+:class:`IMMGSFParams`) read at every call, so ``jax.grad`` / ``jax.vmap`` with respect to them go
+through :func:`gmjax.filters.run`; the log transition matrix is computed from ``params`` at each call.
+
 Models are different programs, so each model's step runs as one branch of ``lax.switch`` inside a
 ``lax.map`` over the model index (no Python loop in the compiled step, and only the selected
 branch runs). All local filters must use the same state type (e.g. all :class:`GaussianState`
@@ -33,22 +39,39 @@ from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
 from gmjax import mixture as gmm
-from gmjax._types import Array
-from gmjax.filters import kalman, sigma
-from gmjax.filters._core import Filter, LocalFilter, UpdateInfo, check_model, is_missing
+from gmjax._types import Array, PRNGKey
+from gmjax.filters.local import LOCAL_FILTERS
+from gmjax.filters._core import LocalFilter, check_model, gaussian_moments, is_missing
+from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import StateSpaceModel
+from gmjax.models.base import ModelParams, StateSpaceModel
 
 __all__ = [
+    "IMMParams",
     "IMMState",
-    "IMMInfo",
     "build_imm",
     "imm_moments",
     "LOCAL_FILTERS",
+    "IMMGSFParams",
     "IMMGSFState",
-    "IMMGSFInfo",
     "build_imm_gsf",
 ]
+
+
+class IMMParams(NamedTuple):
+    """Parameters of :func:`build_imm` (a pytree).
+
+    Attributes:
+        models: ``M`` :class:`~gmjax.models.ModelParams`, one per model (noises as GMs or
+            ``(mean, cov)`` pairs; they are moment-matched). The default prior of ``init`` is
+            ``models[0].prior``.
+        transition: ``(M, M)`` Markov matrix, ``transition[i, j] = P(j | i)``; rows sum to 1.
+        initial_probs: ``(M,)`` initial model probabilities.
+    """
+
+    models: tuple[ModelParams, ...]
+    transition: Array
+    initial_probs: Array
 
 
 class IMMState(NamedTuple):
@@ -60,32 +83,16 @@ class IMMState(NamedTuple):
     log_probs: Array
 
 
-class IMMInfo(NamedTuple):
-    """``loglik`` ``()``: ``log sum_j c_j L_j``; ``model_probs`` ``(M,)`` posterior;
-    ``model_infos``: each model's :class:`UpdateInfo` stacked on ``M``; ``repaired`` ``()``: any."""
-
-    loglik: Array
-    model_probs: Array
-    model_infos: UpdateInfo
-    repaired: Array
-
-
-LOCAL_FILTERS: dict[str, Callable[..., LocalFilter]] = {
-    "ekf": lambda m, **kw: kalman.local_ekf(m.f, m.h, m.f_jacobian, m.h_jacobian),
-    "kf": lambda m, **kw: kalman._linearized_filter(
-        kalman._affine_parts(m.f), kalman._affine_parts(m.h)
-    ),
-    "ukf": lambda m, **kw: sigma.local_ukf(m.f, m.h, **kw),
-    "ckf": lambda m, **kw: sigma.local_ckf(m.f, m.h),
-    "ghkf": lambda m, **kw: sigma.local_ghkf(m.f, m.h, **kw),
-    "sgkf": lambda m, **kw: sigma.local_sgkf(m.f, m.h, **kw),
-    "sckf": lambda m, **kw: sigma.local_sckf(m.f, m.h),
-}
 
 
 def _log(p):
     pos = p > 0
     return jnp.where(pos, jnp.log(jnp.where(pos, p, 1.0)), -jnp.inf)
+
+
+def _split(key: PRNGKey | None, n: int) -> Array | None:
+    """``n`` keys for the per-model calls (``None`` stays ``None``)."""
+    return None if key is None else jax.random.split(key, n)
 
 
 def _mix(local: LocalFilter, states, log_probs, log_P):
@@ -117,6 +124,28 @@ def imm_moments(local: LocalFilter):
     return moments
 
 
+def _posterior_probs(log_probs: Array, logliks: Array, z: Array) -> tuple[Array, Array, Array]:
+    """Model probabilities ``mu_j = c_j L_j / sum_l c_l L_l`` and the step log-likelihood.
+
+    Args:
+        log_probs: ``(M,)`` predicted ``log c_j``.
+        logliks: ``(M,)`` ``log L_j``.
+        z: ``(m,)`` the measurement (a NaN: predict-only).
+
+    Returns:
+        ``(log_mu (M,), loglik (), degenerate ())``: a missing measurement, or every model
+        impossible (``degenerate``), keeps the predicted probabilities; ``loglik`` is 0 on a
+        predict-only step.
+    """
+    missing = is_missing(z)
+    log_joint = log_probs + logliks
+    loglik = logsumexp(log_joint)
+    ok = jnp.isfinite(loglik) & ~missing
+    log_mu = jnp.where(ok, log_joint - jnp.where(ok, loglik, 0.0), log_probs)
+    loglik = jnp.where(missing, jnp.zeros_like(loglik), loglik)
+    return log_mu, loglik, ~jnp.isfinite(loglik) & ~missing
+
+
 def _check_imm_args(models, transition, initial_probs):
     """Eager checks shared by :func:`build_imm` and :func:`build_imm_gsf`: ``(models, P, mu0)``."""
     models = list(models)
@@ -144,6 +173,18 @@ def _check_imm_args(models, transition, initial_probs):
     return models, Pt, mu0
 
 
+def _local_filters(models, filter, filter_kwargs) -> list[LocalFilter]:
+    """The local filter of every model (``filter``: a name of :data:`LOCAL_FILTERS` or a callable)."""
+    if isinstance(filter, str):
+        if filter not in LOCAL_FILTERS:
+            raise ValueError(f"filter: must be one of {sorted(LOCAL_FILTERS)}, got {filter!r}")
+        make = LOCAL_FILTERS[filter]
+        return [make(m, **filter_kwargs) for m in models]
+    if callable(filter):
+        return [filter(m) for m in models]
+    raise ValueError(f"filter: expected a name or a callable, got {filter!r}")
+
+
 def build_imm(
     models: Sequence[StateSpaceModel],
     transition,
@@ -154,6 +195,10 @@ def build_imm(
 ) -> Filter:
     """An IMM filter over ``M`` models (see the module docstring).
 
+    Static (in the closures): ``M``, every model's ``f``/``h`` and its local filter. Numeric
+    (``filter.params``, an :class:`IMMParams` read at every call): every model's noises and prior,
+    the transition matrix and the initial probabilities (``log`` of both taken at call time).
+
     Args:
         models: ``M`` state-space models with the same state and measurement dimensions.
         transition: ``(M, M)`` Markov matrix, ``transition[i, j] = P(j | i)``; rows sum to 1.
@@ -163,9 +208,15 @@ def build_imm(
         **filter_kwargs: passed to the local-filter constructor (e.g. ``alpha`` for ``"ukf"``).
 
     Returns:
-        A :class:`Filter` over :class:`IMMState`; ``update`` returns an :class:`IMMInfo`;
-        ``init(prior=None)`` starts every model from the moment-matched prior (default
-        ``models[0].prior``).
+        A :class:`Filter` over :class:`IMMState` with :class:`IMMParams`; the key is unused
+        (``None`` is fine). ``init(params, prior=None)`` starts every model from the
+        moment-matched prior (default ``params.models[0].prior``). ``update``'s
+        :class:`StepInfo` reports the moments of ``sum_j mu_j N(x_j, P_j)`` after the update,
+        ``loglik = log sum_j c_j L_j``, ``n_components = M`` (the posterior is an ``M``-component
+        mixture), ``flags.repaired`` (any model), ``flags.degenerate`` (every model's likelihood
+        underflowed: predicted probabilities kept), ``reduction=None`` and ``extra`` =
+        ``{"model_probs": (M,) posterior mu_j, "model_loglik": (M,) log L_j,
+        "innovation": (M, m), "innovation_cov": (M, m, m)}``.
 
     Raises:
         ValueError: an empty model list, models of different dimensions, a transition matrix
@@ -174,68 +225,80 @@ def build_imm(
     """
     models, Pt, mu0 = _check_imm_args(models, transition, initial_probs)
     M = len(models)
-    if isinstance(filter, str):
-        if filter not in LOCAL_FILTERS:
-            raise ValueError(f"filter: must be one of {sorted(LOCAL_FILTERS)}, got {filter!r}")
-        make = LOCAL_FILTERS[filter]
-        locals_ = [make(m, **filter_kwargs) for m in models]
-    elif callable(filter):
-        locals_ = [filter(m) for m in models]
-    else:
-        raise ValueError(f"filter: expected a name or a callable, got {filter!r}")
+    locals_ = _local_filters(models, filter, filter_kwargs)
     base = locals_[0]
     dtype = models[0].prior.means.dtype
-    log_P = _log(jnp.asarray(Pt, dtype))
-    log_mu0 = _log(jnp.asarray(mu0, dtype))
-    q = [gmm.moments(m.process_noise) for m in models]
-    r = [gmm.moments(m.measurement_noise) for m in models]
-    q_means, q_covs = jnp.stack([a for a, _ in q]), jnp.stack([b for _, b in q])
-    r_means, r_covs = jnp.stack([a for a, _ in r]), jnp.stack([b for _, b in r])
+    params0 = IMMParams(tuple(m.params for m in models), jnp.asarray(Pt, dtype), jnp.asarray(mu0, dtype))
+    moments = imm_moments(base)
 
-    pred_branches = [
-        (lambda s, t, qm, qc, loc=loc: loc.predict(s, t, qm, qc)) for loc in locals_
-    ]
-    upd_branches = [
-        (lambda s, z, t, rm, rc, loc=loc: loc.update(s, z, t, rm, rc)) for loc in locals_
-    ]
+    def pred_branch(j: int) -> Callable:
+        return lambda p, s, t: locals_[j].predict(s, t, *gaussian_moments(p.models[j].process_noise))
 
-    def init(prior: GaussianMixture | None = None) -> IMMState:
-        prior = models[0].prior if prior is None else prior
-        mean, cov = gmm.moments(prior)
+    def upd_branch(j: int) -> Callable:
+        return lambda p, s, z, t: locals_[j].update(s, z, t, *gaussian_moments(p.models[j].measurement_noise))
+
+    pred_branches = [pred_branch(j) for j in range(M)]
+    upd_branches = [upd_branch(j) for j in range(M)]
+
+    def init(params: IMMParams, prior: Any = None, *, key: PRNGKey | None = None) -> IMMState:
+        del key
+        mean, cov = gaussian_moments(params.models[0].prior if prior is None else prior)
         one = base.init(mean, cov)
         states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (M,) + a.shape), one)
-        return IMMState(states, log_mu0.astype(mean.dtype))
+        return IMMState(states, _log(params.initial_probs).astype(mean.dtype))
 
-    def predict(state: IMMState, t) -> IMMState:
-        log_c, mixed = _mix(base, state.states, state.log_probs, log_P)
+    def predict(params: IMMParams, state: IMMState, inputs: StepInputs, *,
+                key: PRNGKey | None = None) -> IMMState:
+        del key
+        log_c, mixed = _mix(base, state.states, state.log_probs, _log(params.transition))
 
         def one(args):
-            j, s, qm, qc = args
-            return jax.lax.switch(j, pred_branches, s, t, qm, qc)
+            j, s = args
+            return jax.lax.switch(j, pred_branches, params, s, inputs.t)
 
-        states = jax.lax.map(one, (jnp.arange(M), mixed, q_means, q_covs))
-        return IMMState(states, log_c)
+        return IMMState(jax.lax.map(one, (jnp.arange(M), mixed)), log_c)
 
-    def update(state: IMMState, z, t) -> tuple[IMMState, IMMInfo]:
+    def update(params: IMMParams, state: IMMState, z: Array, inputs: StepInputs, *,
+               key: PRNGKey | None = None) -> tuple[IMMState, StepInfo]:
+        del key
+        z = jnp.asarray(z)
+
         def one(args):
-            j, s, rm, rc = args
-            return jax.lax.switch(j, upd_branches, s, z, t, rm, rc)
+            j, s = args
+            return jax.lax.switch(j, upd_branches, params, s, z, inputs.t)
 
-        states, infos = jax.lax.map(one, (jnp.arange(M), state.states, r_means, r_covs))
-        log_joint = state.log_probs + infos.loglik
-        loglik = logsumexp(log_joint)
-        ok = jnp.isfinite(loglik) & ~is_missing(jnp.asarray(z))
-        # a missing measurement (or every model impossible) keeps the predicted probabilities
-        log_mu = jnp.where(ok, log_joint - jnp.where(ok, loglik, 0.0), state.log_probs)
-        loglik = jnp.where(is_missing(jnp.asarray(z)), jnp.zeros_like(loglik), loglik)
-        info = IMMInfo(loglik, jnp.exp(log_mu), infos, jnp.any(infos.repaired))
-        return IMMState(states, log_mu), info
+        states, infos = jax.lax.map(one, (jnp.arange(M), state.states))
+        log_mu, loglik, degenerate = _posterior_probs(state.log_probs, infos.loglik, z)
+        new = IMMState(states, log_mu)
+        mean, cov = moments(new)
+        flags = StepFlags(jnp.any(infos.repaired), jnp.zeros((), bool), degenerate)
+        extra = {"model_probs": jnp.exp(log_mu), "model_loglik": infos.loglik,
+                 "innovation": infos.innovation, "innovation_cov": infos.innovation_cov}
+        return new, StepInfo(mean, cov, loglik, jnp.asarray(M, jnp.int32), flags, None, extra)
 
-    return Filter(init, predict, update, imm_moments(base))
+    return Filter(init, predict, update, params0)
 
 
 # ---------------------------------------------------------------------------------------------
 # IMM whose model-conditioned filters are Gaussian sum filters.
+
+
+class IMMGSFParams(NamedTuple):
+    """Parameters of :func:`build_imm_gsf` (a pytree).
+
+    Attributes:
+        models: ``M`` :class:`~gmjax.models.ModelParams` (GM prior and noises), one per model; the
+            default prior of ``init`` is ``models[0].prior``.
+        reducer: ONE reducer config shared by every model's Gaussian sum filter (its thresholds are
+            leaves: differentiate or tune them here).
+        transition: ``(M, M)`` Markov matrix, ``transition[i, j] = P(j | i)``; rows sum to 1.
+        initial_probs: ``(M,)`` initial model probabilities.
+    """
+
+    models: tuple[ModelParams, ...]
+    reducer: Any
+    transition: Array
+    initial_probs: Array
 
 
 class IMMGSFState(NamedTuple):
@@ -244,7 +307,7 @@ class IMMGSFState(NamedTuple):
     Attributes:
         modes: the model-conditioned :class:`~gmjax.filters.gsf.GSFState` stacked on a leading
             ``M`` axis (mixtures ``(M, K, ...)`` after ``update``; ``(M, M·K·L, ...)`` after a bare
-            ``predict``).
+            ``predict``; the reducer states aligned with those slots).
         log_probs: ``(M,)`` log model probabilities (predicted after ``predict``, posterior after
             ``update``).
     """
@@ -253,41 +316,74 @@ class IMMGSFState(NamedTuple):
     log_probs: Array
 
 
-class IMMGSFInfo(NamedTuple):
-    """Per-step report of :func:`build_imm_gsf`.
-
-    Attributes:
-        mean, cov: ``(d,)``, ``(d, d)``: moments of ``sum_j mu_j p_j(x)`` where ``p_j`` is model
-            ``j``'s *updated* mixture before reduction (seed 000 eqs 17–18 over all models).
-        loglik: ``()`` ``log sum_j c_j p(z_k | model j, z_{1:k-1})``.
-        model_probs: ``(M,)`` posterior model probabilities ``mu_j``.
-        n_components: ``()`` live components after reduction, summed over the models.
-        ise: ``()`` ``sum_j mu_j ISE_j``, the model-probability-weighted ISE of the per-model
-            reductions (0 unless ``track_ise``); not the ISE of the combined mixture.
-        reduction: the per-model :class:`~gmjax.reduction.ReductionInfo` combined: counts summed,
-            ``pruned_mass`` and ``cost`` weighted by ``mu_j``, ``labels`` concatenated,
-            ``overflow`` any, and ``aux`` the per-model entries stacked on ``M``.
-        overflow, repaired: ``()`` bool, any model's flag; degenerate: ``()`` bool, every model's
-            likelihoods underflowed (the predicted model probabilities are kept).
-        mode_infos: every model's :class:`~gmjax.filters.gsf.GSFInfo` stacked on ``M``.
-    """
-
-    mean: Array
-    cov: Array
-    loglik: Array
-    model_probs: Array
-    n_components: Array
-    ise: Array
-    reduction: Any
-    overflow: Array
-    repaired: Array
-    degenerate: Array
-    mode_infos: Any
-
-
 def _slots_flat(tree: Any, M: int) -> Any:
     """Merge the leading ``(M, K)`` axes of every leaf into one ``M·K`` slot axis."""
     return jax.tree_util.tree_map(lambda a: a.reshape((M * a.shape[1],) + a.shape[2:]), tree)
+
+
+def _mix_mixtures(gm: GaussianMixture, log_probs: Array, log_P: Array) -> tuple[Array, Array, Array]:
+    """Interaction of model-conditioned mixtures, nothing collapsed.
+
+    Args:
+        gm: the ``M`` posterior mixtures stacked on ``M`` (weights ``(M, K)``).
+        log_probs: ``(M,)`` posterior ``log mu_i``.
+        log_P: ``(M, M)`` ``log p_ij``.
+
+    Returns:
+        ``(log_c (M,), weights (M, M·K), mask (M, M·K))``: row ``j`` weights slot ``(i, k)`` by
+        ``mu_{i|j} w_ik``; slots with ``mu_{i|j} = 0`` are masked out; a model with ``c_j = 0``
+        keeps its own mixture.
+    """
+    M, K = gm.weights.shape
+    log_joint = log_probs[:, None] + log_P  # (i, j)
+    log_c = logsumexp(log_joint, axis=0)  # (j,)
+    ok = jnp.isfinite(log_c)
+    log_mix = log_joint - jnp.where(ok, log_c, 0.0)[None, :]  # log mu_{i|j}
+    own = jnp.where(jnp.eye(M, dtype=bool), 0.0, -jnp.inf).astype(log_mix.dtype)
+    log_mix = jnp.where(ok[None, :], log_mix, own)
+    mix = jnp.exp(log_mix)  # (i, j)
+    live = mix > 0
+    w = jnp.where(live.T[:, :, None], mix.T[:, :, None] * gm.weights[None], 0.0)  # (j, i, K)
+    mask = live.T[:, :, None] & gm.mask[None]
+    return log_c, w.reshape(M, M * K), mask.reshape(M, M * K)
+
+
+def _combine_reduction(r: Any, mu: Array) -> Any:
+    """The per-model :class:`~gmjax.reduction.ReductionInfo` (stacked on ``M``) as one: counts
+    summed, ``pruned_mass`` and ``cost`` weighted by ``mu_j``, ``labels`` concatenated,
+    ``overflow`` any, ``aux`` kept stacked on ``M``."""
+    return r._replace(
+        n_in=jnp.sum(r.n_in),
+        n_out=jnp.sum(r.n_out),
+        pruned_mass=jnp.sum(mu * r.pruned_mass),
+        labels=r.labels.reshape(-1),
+        overflow=jnp.any(r.overflow),
+        cost=jnp.sum(mu * r.cost),
+    )
+
+
+def _imm_gsf_info(log_mu: Array, loglik: Array, infos: StepInfo) -> StepInfo:
+    """The IMM-GSF :class:`StepInfo` from the models' GSF infos (stacked on ``M``) and the
+    posterior model probabilities (see :func:`build_imm_gsf`)."""
+    mu = jnp.exp(log_mu)
+    mean, cov = gmm.moments(GaussianMixture(mu, infos.mean, infos.cov, mu > 0))
+    flags = StepFlags(
+        repaired=jnp.any(infos.flags.repaired),
+        overflow=jnp.any(infos.flags.overflow),
+        degenerate=jnp.all(infos.flags.degenerate),
+    )
+    extra = {
+        "model_probs": mu,
+        "model_loglik": infos.loglik,
+        "mode_mean": infos.mean,
+        "mode_cov": infos.cov,
+        "mode_n_components": infos.n_components,
+        "n_updated": jnp.sum(infos.extra["n_updated"]),
+        "ise": jnp.sum(mu * infos.extra["ise"]),
+        "mode_reduction": infos.reduction,
+    }
+    return StepInfo(mean, cov, loglik, jnp.sum(infos.n_components).astype(jnp.int32), flags,
+                    _combine_reduction(infos.reduction, mu), extra)
 
 
 def build_imm_gsf(
@@ -313,9 +409,10 @@ def build_imm_gsf(
       mixing, so the mixed density is exact (slots with ``mu_{i|j} = 0`` are masked out). A model
       with ``c_j = 0`` keeps its own mixture.
     * **model-conditioned filtering**: model ``j``'s Gaussian sum filter
-      (:func:`gmjax.filters.gsf.build_gsf`: its own ``f``, ``h``, GM process and measurement noise)
-      predicts the ``M·K`` mixed components (``× L``), updates them (``× J``) and reduces the
-      ``M·K·L·J`` components back to ``K`` with ``reducer`` — one reduction per model per step.
+      (:func:`gmjax.filters.gsf.build_gsf`: its own ``f``, ``h``, GM process and measurement noise,
+      called with ``GSFParams(params.models[j], params.reducer)``) predicts the ``M·K`` mixed
+      components (``× L``, seed 000 eqs 4–8), updates them (``× J``, eqs 9–16) and reduces the
+      ``M·K·L·J`` components back to ``K`` with the reducer — one reduction per model per step.
       Its measurement likelihood is ``L_j = p(z_k | model j, z_{1:k-1})`` (the GSF's ``loglik``).
     * **model probabilities**: ``mu_j = c_j L_j / sum_l c_l L_l``.
 
@@ -325,118 +422,105 @@ def build_imm_gsf(
     state through mixing: the mixed slots of model ``j`` inherit the states of the slots they came
     from, so the reducer must return exactly ``capacity`` slots.
 
-    Models are different programs, so each model's step is a branch of ``lax.switch`` inside a
-    ``lax.map`` over the model index (as in :func:`build_imm`).
+    Static (in the closures): ``M``, ``capacity``, every model's ``f``/``h`` and local filter, the
+    noise component counts ``L``, ``J`` (shapes), ``track_ise``. Numeric (``filter.params``, an
+    :class:`IMMGSFParams` read at every call): every model's GM noises and prior, ONE reducer
+    config shared by all models, the transition matrix and the initial probabilities. The key,
+    when given, is split over the ``M`` model filters at every call (the reducers of
+    :mod:`gmjax.reduction` draw nothing, so ``None`` is fine).
 
     Args:
-        models: ``M`` state-space models with the same state and measurement dimensions.
+        models: ``M`` state-space models with the same state and measurement dimensions and the
+            same numbers of process- and measurement-noise components.
         transition: ``(M, M)`` Markov matrix, ``transition[i, j] = P(j | i)``; rows sum to 1.
         local: the local filter of every component (a name for
-            :func:`gmjax.filters.gsf.local_filter_for` or a :class:`LocalFilter` used for all models).
-        reducer: any reducer of :mod:`gmjax.reduction` (``None``: keep the ``capacity`` heaviest).
+            :func:`gmjax.filters.local.local_filter_for` or a :class:`LocalFilter` used for all models).
+        reducer: any reducer of :mod:`gmjax.reduction`, shared by the models (``None``:
+            :class:`~gmjax.reduction.PruneTop` keeping the ``capacity`` heaviest).
         capacity: ``K``, slots of each model's posterior mixture (static).
         initial_probs: ``(M,)`` initial model probabilities (default uniform).
         track_ise: compute each model's reduction ISE (``O((M K L J)^2)`` per model and step).
 
     Returns:
-        A :class:`Filter` over :class:`IMMGSFState`; ``init(prior=None, *, key=None)`` starts every
-        model from the prior mixture (default ``models[0].prior``); ``update`` returns an
-        :class:`IMMGSFInfo`; ``moments`` gives the mean and covariance of ``sum_j mu_j p_j``.
+        A :class:`Filter` over :class:`IMMGSFState` with :class:`IMMGSFParams`;
+        ``init(params, prior=None)`` starts every model from the prior mixture (default
+        ``params.models[0].prior``). ``update``'s :class:`StepInfo`: ``mean``, ``cov`` = moments
+        of ``sum_j mu_j p_j(x)`` over every model's *updated* mixture before reduction (seed 000
+        eqs 17–18 over all models); ``loglik = log sum_j c_j L_j``; ``n_components`` = live
+        components after reduction summed over the models; ``flags``: ``repaired`` / ``overflow``
+        any model's, ``degenerate`` every model's likelihoods underflowed (predicted model
+        probabilities kept); ``reduction`` = the per-model ``ReductionInfo`` combined into one
+        (counts summed, ``pruned_mass`` and ``cost`` weighted by ``mu_j``, ``labels``
+        concatenated, ``overflow`` any, ``aux`` stacked on ``M``), so the consumers that read
+        ``reduction.cost`` per step (Monte Carlo AEISE) get the model-probability-weighted cost;
+        ``extra`` = ``{"model_probs": (M,) mu_j, "model_loglik": (M,) log L_j, "mode_mean":
+        (M, d), "mode_cov": (M, d, d) each model's pre-reduction moments, "mode_n_components":
+        (M,), "n_updated": () live components before reduction (all models), "ise": ()
+        sum_j mu_j ISE_j (0 unless track_ise; not the ISE of the combined mixture),
+        "mode_reduction": the per-model ReductionInfo stacked on M}``.
 
     Raises:
-        ValueError: the checks of :func:`build_imm` and of :func:`gmjax.filters.gsf.build_gsf`.
+        ValueError: the checks of :func:`build_imm` and of :func:`gmjax.filters.gsf.build_gsf`;
+            models with different numbers of noise components.
     """
-    from gmjax.filters.gsf import GSFState, build_gsf
+    from gmjax.filters.gsf import GSFParams, GSFState, build_gsf, check_reducer
+    from gmjax.reduction import PruneTop
 
     models, Pt, mu0 = _check_imm_args(models, transition, initial_probs)
     M = len(models)
+    counts = {(m.process_noise.capacity, m.measurement_noise.capacity) for m in models}
+    if len(counts) != 1:
+        raise ValueError(f"models: all models must have the same numbers of (process, measurement) "
+                         f"noise components, got {sorted(counts)}")
     gsfs = [build_gsf(m, local, reducer, capacity, track_ise=track_ise) for m in models]
+    reducer = PruneTop(num_out=capacity) if check_reducer(reducer) is None else reducer
     dtype = models[0].prior.means.dtype
-    log_P = _log(jnp.asarray(Pt, dtype))
-    log_mu0 = _log(jnp.asarray(mu0, dtype))
-    pred_branches = [(lambda s, t, g=g: g.predict(s, t)) for g in gsfs]
-    upd_branches = [(lambda s, z, t, g=g: g.update(s, z, t)) for g in gsfs]
+    params0 = IMMGSFParams(tuple(m.params for m in models), reducer, jnp.asarray(Pt, dtype),
+                           jnp.asarray(mu0, dtype))
 
-    def init(prior: GaussianMixture | None = None, *, key=None) -> IMMGSFState:
-        prior = models[0].prior if prior is None else prior
-        key = jax.random.key(0) if key is None else key
-        one = gsfs[0].init(prior, key=key)
+    def pred_branch(j: int) -> Callable:
+        g = gsfs[j]
+        return lambda p, s, inp, k: g.predict(GSFParams(p.models[j], p.reducer), s, inp, key=k)
+
+    def upd_branch(j: int) -> Callable:
+        g = gsfs[j]
+        return lambda p, s, z, inp, k: g.update(GSFParams(p.models[j], p.reducer), s, z, inp, key=k)
+
+    pred_branches = [pred_branch(j) for j in range(M)]
+    upd_branches = [upd_branch(j) for j in range(M)]
+
+    def init(params: IMMGSFParams, prior: GaussianMixture | None = None, *,
+             key: PRNGKey | None = None) -> IMMGSFState:
+        prior = params.models[0].prior if prior is None else prior
+        one = gsfs[0].init(GSFParams(params.models[0], params.reducer), prior, key=key)
         modes = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (M,) + a.shape), one)
-        modes = modes._replace(key=jax.random.split(key, M))
-        return IMMGSFState(modes, log_mu0.astype(prior.means.dtype))
+        return IMMGSFState(modes, _log(params.initial_probs).astype(prior.means.dtype))
 
-    def predict(state: IMMGSFState, t) -> IMMGSFState:
+    def predict(params: IMMGSFParams, state: IMMGSFState, inputs: StepInputs, *,
+                key: PRNGKey | None = None) -> IMMGSFState:
         gm = state.modes.mixture  # (M, K, ...)
-        K = gm.weights.shape[1]
-        log_joint = state.log_probs[:, None] + log_P  # (i, j)
-        log_c = logsumexp(log_joint, axis=0)  # (j,)
-        ok = jnp.isfinite(log_c)
-        log_mix = log_joint - jnp.where(ok, log_c, 0.0)[None, :]  # log mu_{i|j}
-        own = jnp.where(jnp.eye(M, dtype=bool), 0.0, -jnp.inf).astype(log_mix.dtype)
-        log_mix = jnp.where(ok[None, :], log_mix, own)  # c_j = 0: model j keeps its own mixture
-        mix = jnp.exp(log_mix)  # (i, j)
-        live = mix > 0
-        # mixed weights / masks of every target model j: (j, i, K) -> (j, M·K)
-        w = jnp.where(live.T[:, :, None], mix.T[:, :, None] * gm.weights[None], 0.0)
-        mask = live.T[:, :, None] & gm.mask[None]
-        w = w.reshape(M, M * K)
-        mask = mask.reshape(M, M * K)
-        means = _slots_flat(gm.means, M)
-        covs = _slots_flat(gm.covs, M)
+        log_c, w, mask = _mix_mixtures(gm, state.log_probs, _log(params.transition))
+        means, covs = _slots_flat(gm.means, M), _slots_flat(gm.covs, M)
         rstate = _slots_flat(state.modes.reducer_state, M)
 
         def one(args):
-            j, wj, mj, key = args
-            mixed = gmm.sanitize(GaussianMixture(wj, means, covs, mj))
-            return jax.lax.switch(j, pred_branches, GSFState(mixed, key, rstate), t)
+            j, wj, mj, kj = args
+            mixed = GSFState(gmm.sanitize(GaussianMixture(wj, means, covs, mj)), rstate)
+            return jax.lax.switch(j, pred_branches, params, mixed, inputs, kj)
 
-        modes = jax.lax.map(one, (jnp.arange(M), w, mask, state.modes.key))
+        modes = jax.lax.map(one, (jnp.arange(M), w, mask, _split(key, M)))
         return IMMGSFState(modes, log_c)
 
-    def update(state: IMMGSFState, z, t) -> tuple[IMMGSFState, IMMGSFInfo]:
+    def update(params: IMMGSFParams, state: IMMGSFState, z: Array, inputs: StepInputs, *,
+               key: PRNGKey | None = None) -> tuple[IMMGSFState, StepInfo]:
         z = jnp.asarray(z)
 
         def one(args):
-            j, s = args
-            return jax.lax.switch(j, upd_branches, s, z, t)
+            j, s, kj = args
+            return jax.lax.switch(j, upd_branches, params, s, z, inputs, kj)
 
-        modes, infos = jax.lax.map(one, (jnp.arange(M), state.modes))
-        missing = is_missing(z)
-        log_joint = state.log_probs + infos.loglik
-        loglik = logsumexp(log_joint)
-        ok = jnp.isfinite(loglik) & ~missing
-        log_mu = jnp.where(ok, log_joint - jnp.where(ok, loglik, 0.0), state.log_probs)
-        mu = jnp.exp(log_mu)
-        mean, cov = gmm.moments(GaussianMixture(mu, infos.mean, infos.cov, mu > 0))
-        r = infos.reduction
-        reduction = r._replace(
-            n_in=jnp.sum(r.n_in),
-            n_out=jnp.sum(r.n_out),
-            pruned_mass=jnp.sum(mu * r.pruned_mass),
-            labels=r.labels.reshape(-1),
-            overflow=jnp.any(r.overflow),
-            cost=jnp.sum(mu * r.cost),
-        )
-        info = IMMGSFInfo(
-            mean=mean,
-            cov=cov,
-            loglik=jnp.where(missing, jnp.zeros_like(loglik), loglik),
-            model_probs=mu,
-            n_components=jnp.sum(infos.n_components),
-            ise=jnp.sum(mu * infos.ise),
-            reduction=reduction,
-            overflow=jnp.any(infos.overflow),
-            repaired=jnp.any(infos.repaired),
-            degenerate=jnp.all(infos.degenerate),
-            mode_infos=infos,
-        )
-        return IMMGSFState(modes, log_mu), info
+        modes, infos = jax.lax.map(one, (jnp.arange(M), state.modes, _split(key, M)))
+        log_mu, loglik, _ = _posterior_probs(state.log_probs, infos.loglik, z)
+        return IMMGSFState(modes, log_mu), _imm_gsf_info(log_mu, loglik, infos)
 
-    def moments(state: IMMGSFState):
-        gm = state.modes.mixture
-        w = jnp.exp(state.log_probs)[:, None] * gm.weights
-        flat = GaussianMixture(w.reshape(-1), _slots_flat(gm.means, M), _slots_flat(gm.covs, M),
-                               gm.mask.reshape(-1))
-        return gmm.moments(gmm.sanitize(flat))
-
-    return Filter(init, predict, update, moments)
+    return Filter(init, predict, update, params0)

@@ -1,10 +1,10 @@
 """Bootstrap (SIR) and regularised particle filters.
 
-The filter state carries its own PRNG key, so a particle filter is a :class:`gmjax.filters.Filter`
-like the Gaussian ones and runs under :func:`gmjax.filters.run`:
+A particle filter is a :class:`gmjax.filters.Filter` like the Gaussian ones and runs under
+:func:`gmjax.filters.run`; its PRNG key is passed on every call (never kept in the state):
 
 >>> pf = build_pf(model, 1000, resampling="systematic")
->>> states, infos = run(pf, zs, init_state=pf.init(key=key))
+>>> states, infos = run(pf, zs, key=key)
 
 Step (Gordon, Salmond & Smith 1993): predict ``x_i <- f(x_i, t) + v_i`` with ``v_i`` drawn from the
 process-noise sampler; update ``log w_i += log p_w(z - h(x_i, t))`` and normalise (log domain);
@@ -17,14 +17,14 @@ weighted particle covariance before resampling and
 ``h_opt = bandwidth_scale * (4 / (d + 2))^{1/(d+4)} N^{-1/(d+4)}`` (the optimal Gaussian-kernel
 bandwidth).
 
-Noises: the process noise is a :class:`GaussianMixture` or any sampler ``(key, (N,)) -> (N, d)``
-(e.g. a scenario's true-noise simulator); the measurement noise is a :class:`GaussianMixture` or a
-log-density ``w (m,) -> ()``.
+Noises: the process noise is a :class:`GaussianMixture` (read from ``params`` at every call) or any
+sampler ``(key, (N,)) -> (N, d)`` (e.g. a scenario's true-noise simulator, static code); the
+measurement noise is a :class:`GaussianMixture` (in ``params``) or a log-density ``w (m,) -> ()``.
 """
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,14 +33,15 @@ from jax.scipy.special import logsumexp
 from gmjax import gaussian
 from gmjax import mixture as gmm
 from gmjax._types import Array, PRNGKey
-from gmjax.filters._core import Filter, check_model, is_missing, loglik_from_chol, safe_chol
+from gmjax.filters._core import check_model, is_missing, loglik_from_chol, safe_chol
+from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import StateSpaceModel
+from gmjax.models.base import ModelParams, StateSpaceModel
 
 __all__ = [
     "TimedSampler",
     "PFState",
-    "PFInfo",
+    "PFParams",
     "effective_sample_size",
     "multinomial",
     "systematic",
@@ -49,6 +50,7 @@ __all__ = [
     "RESAMPLERS",
     "build_pf",
     "pf_moments",
+    "kernel_bandwidth",
 ]
 
 
@@ -56,36 +58,36 @@ class TimedSampler(NamedTuple):
     """Wrap a per-draw, time-dependent noise simulator ``(key, t) -> (d,)`` for :func:`build_pf`.
 
     This is the signature of ``Scenario.sample_process_noise``; the particle filter draws one
-    sample per particle with independent keys (``vmap`` over ``jax.random.split(key, N)``).
+    sample per particle with independent keys (``vmap`` over ``jax.random.split(key, N)``) and
+    passes ``inputs.t`` as ``t``.
     """
 
     fn: Callable[[PRNGKey, Array], Array]
 
 
 class PFState(NamedTuple):
-    """Particles ``(N, d)``, normalised log-weights ``(N,)`` and the PRNG key for the next step."""
+    """Particles ``(N, d)`` and normalised log-weights ``(N,)`` (no PRNG key: it is passed per call)."""
 
     particles: Array
     log_weights: Array
-    key: PRNGKey
 
 
-class PFInfo(NamedTuple):
-    """What a particle-filter update reports.
+class PFParams(NamedTuple):
+    """Parameters of :func:`build_pf` (a pytree; replace leaves to vmap or tune).
 
     Attributes:
-        loglik: ``()`` estimate of ``log p(z_k | z_{1:k-1})``, ``log sum_i w_i p(z | x_i)``
-            (0 when ``z`` is missing; ``-inf`` when ``degenerate``).
-        ess: ``()`` effective sample size after weighting, before resampling.
-        resampled: ``()`` bool.
-        degenerate: ``()`` bool, every particle had zero likelihood; the weights were kept
-            unchanged instead of becoming NaN.
+        model: the model's prior and GM noises (:class:`~gmjax.models.ModelParams`). A GM noise
+            override given to :func:`build_pf` is stored here; a noise given as a sampler or a
+            log-density is code, stays in the filter's closure, and the corresponding entry here is
+            then unused.
+        ess_threshold: ``()`` resample when ``ESS < ess_threshold * N``.
+        bandwidth_scale: ``()`` multiplies the optimal kernel bandwidth ``h_opt`` (regularised PF
+            only).
     """
 
-    loglik: Array
-    ess: Array
-    resampled: Array
-    degenerate: Array
+    model: ModelParams
+    ess_threshold: Array
+    bandwidth_scale: Array
 
 
 def _normalize_log(log_w: Array) -> Array:
@@ -181,6 +183,12 @@ def pf_moments(state: PFState) -> tuple[Array, Array]:
     return mean, gaussian.symmetrize(jnp.einsum("n,ni,nj->ij", w, dev, dev))
 
 
+def kernel_bandwidth(bandwidth_scale: Array, d: int, n_particles: int) -> Array:
+    """Optimal Gaussian-kernel bandwidth ``bandwidth_scale * (4/(d+2))^{1/(d+4)} N^{-1/(d+4)}``
+    (Musso, Oudjane & Le Gland 2001); ``d`` and ``N`` are static, ``bandwidth_scale`` may be traced."""
+    return bandwidth_scale * (4.0 / (d + 2)) ** (1.0 / (d + 4)) * n_particles ** (-1.0 / (d + 4))
+
+
 def _gm_sampler(gm: GaussianMixture) -> Callable[[PRNGKey, tuple], Array]:
     """Sampler of a GM with its Cholesky factors computed once (not once per particle)."""
     factors = jax.vmap(lambda P: safe_chol(P).factor)(gm.covs)
@@ -210,32 +218,104 @@ def _gm_logpdf(gm: GaussianMixture) -> Callable[[Array], Array]:
     return logpdf
 
 
-def _process_sampler(noise) -> Callable[[PRNGKey, tuple, Array], Array]:
-    """A sampler ``(key, (N,), t) -> (N, d)`` from any supported process-noise description."""
-    if isinstance(noise, GaussianMixture):
-        sample = _gm_sampler(noise)
-        return lambda key, shape, t: sample(key, shape)
+_ProcessSampler = Callable[[GaussianMixture, PRNGKey, tuple, Array], Array]
+
+
+def _process_sampler(noise: Any) -> _ProcessSampler:
+    """A sampler ``(params_noise, key, (N,), t) -> (N, d)`` from a process-noise description.
+
+    ``None`` or a GM: draw from the GM held in ``params`` (read at each call). A
+    :class:`TimedSampler` or a callable ``(key, (N,)) -> (N, d)``: static code; ``params_noise``
+    is ignored.
+    """
+    if noise is None or isinstance(noise, GaussianMixture):
+        return lambda gm, key, shape, t: _gm_sampler(gm)(key, shape)
     if isinstance(noise, TimedSampler):
-        return lambda key, shape, t: jax.vmap(lambda k: noise.fn(k, t))(
+        return lambda gm, key, shape, t: jax.vmap(lambda k: noise.fn(k, t))(
             jax.random.split(key, shape[0])
         )
     if callable(noise):
-        return lambda key, shape, t: noise(key, shape)
+        return lambda gm, key, shape, t: noise(key, shape)
     raise ValueError(
         "process_noise: expected a GaussianMixture or a sampler (key, (N,)) -> (N, d), "
         f"got {type(noise).__name__}"
     )
 
 
-def _measurement_logpdf(noise) -> Callable[[Array], Array]:
-    if isinstance(noise, GaussianMixture):
-        return _gm_logpdf(noise)
+def _measurement_logpdf(noise: Any) -> Callable[[GaussianMixture], Callable[[Array], Array]]:
+    """``params_noise -> (w (m,) -> ())``: the GM in ``params`` (``None`` or a GM override) or a
+    static log-density (``params_noise`` ignored)."""
+    if noise is None or isinstance(noise, GaussianMixture):
+        return _gm_logpdf
     if callable(noise):
-        return noise
+        return lambda gm: noise
     raise ValueError(
         "measurement_noise: expected a GaussianMixture or a log-density w -> (), "
         f"got {type(noise).__name__}"
     )
+
+
+def _check_noise_dim(name: str, noise: Any, dim: int) -> None:
+    if isinstance(noise, GaussianMixture) and noise.dim != dim:
+        raise ValueError(f"{name}: dimension {noise.dim} does not match the expected {dim}")
+
+
+def _require_key(key: PRNGKey | None, call: str) -> PRNGKey:
+    if key is None:
+        raise ValueError(
+            f"key: the particle filter needs a PRNG key in {call} (pass key=jax.random.key(...), "
+            "or run(filter, zs, key=...))"
+        )
+    return key
+
+
+def _reweight(log_weights: Array, ll_i: Array, missing: Array) -> tuple[Array, Array, Array]:
+    """Bayes step in the log domain: ``log w_i + log p(z | x_i)``, normalised.
+
+    Returns:
+        ``(log_weights (N,), loglik (), degenerate ())``: ``loglik = log sum_i w_i p(z | x_i)``
+        (0 when ``missing``, ``-inf`` when every likelihood underflowed); on a degenerate or
+        missing step the weights are kept unchanged.
+    """
+    ll_i = jnp.where(jnp.isnan(ll_i), -jnp.inf, ll_i)
+    lw = log_weights + ll_i
+    total = logsumexp(lw)
+    ok = jnp.isfinite(total)
+    lw = jnp.where(ok, lw - jnp.where(ok, total, 0.0), log_weights)
+    lw = jnp.where(missing, log_weights, lw)
+    loglik = jnp.where(missing, 0.0, jnp.where(ok, total, -jnp.inf))
+    return lw, loglik, ~ok & ~missing
+
+
+def _regularize(key: PRNGKey, x_rs: Array, x: Array, lw: Array, h_opt: Array) -> Array:
+    """Musso et al. kernel jitter: ``x_rs + h_opt * D eps``, ``D D^T`` the weighted covariance of
+    the particles ``x`` with log-weights ``lw`` before resampling; ``eps ~ N(0, I)``."""
+    _, cov = pf_moments(PFState(x, lw))
+    D = safe_chol(cov).factor
+    eps = jax.random.normal(key, x.shape, x.dtype)
+    return x_rs + h_opt * eps @ D.T
+
+
+def _check_build_args(n_particles, resampling, ess_threshold, bandwidth_scale) -> None:
+    if isinstance(n_particles, bool) or not isinstance(n_particles, int) or n_particles < 1:
+        raise ValueError(f"n_particles: must be a positive integer, got {n_particles!r}")
+    if resampling not in RESAMPLERS:
+        raise ValueError(f"resampling: must be one of {sorted(RESAMPLERS)}, got {resampling!r}")
+    if not 0.0 <= float(ess_threshold) <= 1.0:
+        raise ValueError(f"ess_threshold: must lie in [0, 1], got {ess_threshold!r}")
+    if not float(bandwidth_scale) > 0:
+        raise ValueError(f"bandwidth_scale: must be > 0, got {bandwidth_scale!r}")
+
+
+def _default_params(model: StateSpaceModel, process_noise: Any, measurement_noise: Any,
+                    ess_threshold: float, bandwidth_scale: float) -> PFParams:
+    """``filter.params``: the model's parameters with any GM noise override in place."""
+    base = model.params
+    if isinstance(process_noise, GaussianMixture):
+        base = base._replace(process_noise=process_noise)
+    if isinstance(measurement_noise, GaussianMixture):
+        base = base._replace(measurement_noise=measurement_noise)
+    return PFParams(base, jnp.asarray(float(ess_threshold)), jnp.asarray(float(bandwidth_scale)))
 
 
 def build_pf(
@@ -252,85 +332,90 @@ def build_pf(
     """A bootstrap (SIR) or regularised particle filter as a :class:`Filter`.
 
     Args:
-        model: the state-space model (``f``, ``h``, prior; its noises are the defaults).
+        model: the state-space model (``f``, ``h`` stay in the closure; its prior and noises are
+            the defaults of ``params.model``).
         n_particles: ``N`` (static).
-        resampling: ``"multinomial"``, ``"systematic"``, ``"stratified"`` or ``"residual"``.
+        resampling: ``"multinomial"``, ``"systematic"``, ``"stratified"`` or ``"residual"``
+            (static).
         ess_threshold: resample when ``ESS < ess_threshold * N``; ``1.0`` (default) resamples
-            at every step (classic SIR), ``0`` never.
-        process_noise: overrides ``model.process_noise``: a GM, a sampler
-            ``(key, (N,)) -> (N, d)``, or a :class:`TimedSampler` around a per-draw simulator
+            at every step (classic SIR), ``0`` never. Stored in ``params.ess_threshold``.
+        process_noise: overrides ``model.process_noise``: a GM (stored in
+            ``params.model.process_noise``), or code kept static in the closure: a sampler
+            ``(key, (N,)) -> (N, d)`` or a :class:`TimedSampler` around a per-draw simulator
             ``(key, t) -> (d,)`` such as ``Scenario.sample_process_noise``.
-        measurement_noise: overrides ``model.measurement_noise``: a GM or a log-density
-            ``w (m,) -> ()``.
-        regularized: add the Gaussian kernel jitter after each resampling (regularised PF).
-        bandwidth_scale: multiplies the optimal kernel bandwidth ``h_opt``.
+        measurement_noise: overrides ``model.measurement_noise``: a GM (stored in
+            ``params.model.measurement_noise``) or a static log-density ``w (m,) -> ()``.
+        regularized: add the Gaussian kernel jitter after each resampling (regularised PF; static).
+        bandwidth_scale: multiplies the optimal kernel bandwidth ``h_opt``
+            (:func:`kernel_bandwidth`); stored in ``params.bandwidth_scale``.
 
     Returns:
-        A :class:`Filter` whose ``init(prior=None, *, key)`` samples ``N`` particles from the
-        prior (default ``model.prior``); ``update`` returns a :class:`PFInfo`.
+        A :class:`Filter` over :class:`PFState` with :class:`PFParams`. ``init(params, prior=None,
+        *, key)`` samples ``N`` particles from the prior (default ``params.model.prior``);
+        ``predict`` draws the process noise with its ``key``; ``update`` uses its ``key`` for the
+        resampling and the regularisation jitter. Every call needs a key. ``update``'s
+        :class:`StepInfo` reports the weighted particle moments after the update
+        (:func:`pf_moments`), ``loglik = log sum_i w_i p(z | x_i)`` (``-inf`` when degenerate),
+        ``n_components = 1`` (a particle cloud is no mixture; the count is static, ``N``),
+        ``flags.degenerate`` (every likelihood underflowed; the weights were
+        kept), and ``extra = {"ess": () ESS after weighting, before resampling,
+        "resampled": () bool}``.
 
     Raises:
         ValueError: unknown ``resampling``, ``n_particles < 1``, a threshold outside ``[0, 1]``,
-            a non-positive bandwidth, or a bad model.
+            a non-positive bandwidth, a bad noise override or a bad model; at call time, a missing
+            ``key`` or a prior that is not a :class:`GaussianMixture`.
     """
-    d, _ = check_model(model)
-    if isinstance(n_particles, bool) or not isinstance(n_particles, int) or n_particles < 1:
-        raise ValueError(f"n_particles: must be a positive integer, got {n_particles!r}")
-    if resampling not in RESAMPLERS:
-        raise ValueError(f"resampling: must be one of {sorted(RESAMPLERS)}, got {resampling!r}")
-    if not 0.0 <= float(ess_threshold) <= 1.0:
-        raise ValueError(f"ess_threshold: must lie in [0, 1], got {ess_threshold!r}")
-    if not float(bandwidth_scale) > 0:
-        raise ValueError(f"bandwidth_scale: must be > 0, got {bandwidth_scale!r}")
+    d, m = check_model(model)
+    _check_build_args(n_particles, resampling, ess_threshold, bandwidth_scale)
+    _check_noise_dim("process_noise", process_noise, d)
+    _check_noise_dim("measurement_noise", measurement_noise, m)
     N = n_particles
     resample = RESAMPLERS[resampling]
-    sample_v = _process_sampler(model.process_noise if process_noise is None else process_noise)
-    meas_lp = _measurement_logpdf(
-        model.measurement_noise if measurement_noise is None else measurement_noise
-    )
+    sample_v = _process_sampler(process_noise)
+    meas_lp = _measurement_logpdf(measurement_noise)
     fv = jax.vmap(model.f, in_axes=(0, None))
     hv = jax.vmap(model.h, in_axes=(0, None))
-    h_opt = bandwidth_scale * (4.0 / (d + 2)) ** (1.0 / (d + 4)) * N ** (-1.0 / (d + 4))
 
-    def init(prior: GaussianMixture | None = None, *, key: PRNGKey) -> PFState:
-        prior = model.prior if prior is None else prior
-        k_s, k_next = jax.random.split(key)
-        x = _gm_sampler(prior)(k_s, (N,))
-        return PFState(x, jnp.full((N,), -jnp.log(N), x.dtype), k_next)
+    def init(params: PFParams, prior: GaussianMixture | None = None, *,
+             key: PRNGKey | None = None) -> PFState:
+        key = _require_key(key, "init")
+        prior = params.model.prior if prior is None else prior
+        if not isinstance(prior, GaussianMixture):
+            raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
+        x = _gm_sampler(prior)(key, (N,))
+        return PFState(x, jnp.full((N,), -jnp.log(N), x.dtype))
 
-    def predict(state: PFState, t) -> PFState:
-        key, k_v = jax.random.split(state.key)
-        v = sample_v(k_v, (N,), t).astype(state.particles.dtype)
-        return PFState(fv(state.particles, t) + v, state.log_weights, key)
+    def predict(params: PFParams, state: PFState, inputs: StepInputs, *,
+                key: PRNGKey | None = None) -> PFState:
+        key = _require_key(key, "predict")
+        t = inputs.t
+        v = sample_v(params.model.process_noise, key, (N,), t).astype(state.particles.dtype)
+        return PFState(fv(state.particles, t) + v, state.log_weights)
 
-    def update(state: PFState, z, t) -> tuple[PFState, PFInfo]:
+    def update(params: PFParams, state: PFState, z: Array, inputs: StepInputs, *,
+               key: PRNGKey | None = None) -> tuple[PFState, StepInfo]:
+        key = _require_key(key, "update")
         z = jnp.asarray(z)
         missing = is_missing(z)
-        x = state.particles
+        x, t = state.particles, inputs.t
         pred = hv(x, t)
         z_safe = jnp.where(missing, pred[0], z)
-        ll_i = jax.vmap(meas_lp)(z_safe - pred)
-        ll_i = jnp.where(jnp.isnan(ll_i), -jnp.inf, ll_i)
-        lw = state.log_weights + ll_i
-        total = logsumexp(lw)
-        ok = jnp.isfinite(total)
-        lw = jnp.where(ok, lw - jnp.where(ok, total, 0.0), state.log_weights)
-        lw = jnp.where(missing, state.log_weights, lw)
+        ll_i = jax.vmap(meas_lp(params.model.measurement_noise))(z_safe - pred)
+        lw, loglik, degenerate = _reweight(state.log_weights, ll_i, missing)
         ess = effective_sample_size(lw)
-        do_rs = (ess < ess_threshold * N) & ~missing
-        key, k_rs, k_reg = jax.random.split(state.key, 3)
-        idx = resample(k_rs, lw)
-        x_rs = x[idx]
+        do_rs = (ess < jnp.asarray(params.ess_threshold, ess.dtype) * N) & ~missing
+        k_rs, k_reg = jax.random.split(key)
+        x_rs = x[resample(k_rs, lw)]
         if regularized:
-            _, cov = pf_moments(PFState(x, lw, key))
-            D = safe_chol(cov).factor
-            eps = jax.random.normal(k_reg, x.shape, x.dtype)
-            x_rs = x_rs + h_opt * eps @ D.T
-        uniform = jnp.full_like(lw, -jnp.log(N))
-        new_x = jnp.where(do_rs, x_rs, x)
-        new_lw = jnp.where(do_rs, uniform, lw)
-        loglik = jnp.where(missing, 0.0, jnp.where(ok, total, -jnp.inf))
-        return PFState(new_x, new_lw, key), PFInfo(loglik, ess, do_rs, ~ok & ~missing)
+            h_opt = kernel_bandwidth(jnp.asarray(params.bandwidth_scale, x.dtype), d, N)
+            x_rs = _regularize(k_reg, x_rs, x, lw, h_opt)
+        new = PFState(jnp.where(do_rs, x_rs, x), jnp.where(do_rs, jnp.full_like(lw, -jnp.log(N)), lw))
+        mean, cov = pf_moments(new)
+        no = jnp.zeros((), bool)
+        info = StepInfo(mean, cov, loglik, jnp.ones((), jnp.int32), StepFlags(no, no, degenerate),
+                        None, {"ess": ess, "resampled": do_rs})
+        return new, info
 
-    return Filter(init, predict, update, pf_moments)
-
+    params = _default_params(model, process_noise, measurement_noise, ess_threshold, bandwidth_scale)
+    return Filter(init, predict, update, params)

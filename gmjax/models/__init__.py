@@ -1,6 +1,6 @@
 """State-space models, true-noise simulators and the scenarios of the papers.
 
-* :class:`StateSpaceModel`, :class:`Scenario`, :func:`simulate` (DESIGN §3).
+* :class:`StateSpaceModel`, :class:`Scenario`, :func:`simulate` (docs/design.md §3).
 * :mod:`seed000`: the scalar measurement-jump system and the range-bearing target (seed 000 §IV).
 * :mod:`seed001`: the 1-D Gamma-noise system (seed 001 §4.1).
 * :mod:`seed003`: the §4.2 tracking scenarios (circular motion, step manoeuvre) and their CS/CT IMM models.
@@ -15,11 +15,13 @@ from gmjax.models import seed000 as seed000
 from gmjax.models import seed001 as seed001
 from gmjax.models import seed003 as seed003
 from gmjax.models import seed004 as seed004
-from gmjax.models._base import Scenario as Scenario
-from gmjax.models._base import StateSpaceModel as StateSpaceModel
-from gmjax.models._base import simulate as simulate
+from gmjax.models.base import ModelParams as ModelParams
+from gmjax.models.base import Scenario as Scenario
+from gmjax.models.base import StateSpaceModel as StateSpaceModel
+from gmjax.models.base import simulate as simulate
 
 __all__ = [
+    "ModelParams",
     "StateSpaceModel",
     "Scenario",
     "simulate",

@@ -16,8 +16,7 @@ import numpy as np
 
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture, from_gaussian
-from gmjax.pcrb._gmm import GMMPCRBConfig
-from gmjax.pcrb._model import PCRBModel
+from gmjax.pcrb import GMMPCRBConfig, PCRBModel
 from gmjax.split import SplitLibrary, gauss_hermite_library, split_repeated
 
 __all__ = [

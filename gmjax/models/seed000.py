@@ -8,7 +8,7 @@ import numpy as np
 
 from gmjax import mixture as gmm
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import Scenario, StateSpaceModel
+from gmjax.models.base import Scenario, StateSpaceModel
 from gmjax.models.noise import glint, laplace, mixture_sampler
 
 __all__ = ["jump_system", "range_bearing", "JUMP_PROCESS_NOISE", "JUMP_PRIOR"]

@@ -11,7 +11,7 @@ import numpy as np
 
 from gmjax import mixture as gmm
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import Scenario, StateSpaceModel
+from gmjax.models.base import Scenario, StateSpaceModel
 
 __all__ = [
     "gamma_system",

@@ -51,7 +51,7 @@ import numpy as np
 
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
-from gmjax.models._base import Scenario, StateSpaceModel
+from gmjax.models.base import Scenario, StateSpaceModel
 from gmjax.models.noise import mixture_sampler
 
 __all__ = [

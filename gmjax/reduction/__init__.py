@@ -3,6 +3,11 @@
 Every reducer is a function ``name(gm, ..., *, key=None) -> (GaussianMixture, ReductionInfo)`` and a
 frozen config (static sizes, dynamic thresholds) that satisfies the :class:`Reducer` protocol.
 All run under ``jit`` and ``vmap``; ``info.labels`` maps every input slot to its output slot.
+
+:class:`PruneThreshold`, :class:`PruneCensored` and :class:`PCM` carry a relaxation (a static
+``mode``: ``"hard"``, ``"soft"``, ``"straight_through"``, and a traced temperature) that makes
+them differentiable in their thresholds; the shared primitives (soft step, gates, gated pruning,
+soft memberships, the soft split gate) are in :mod:`gmjax.reduction.relax`.
 """
 
 from gmjax.reduction._base import Reducer as Reducer
@@ -42,17 +47,26 @@ from gmjax.reduction._refine import ise_refine as ise_refine
 from gmjax.reduction._vo_ma import VoMa as VoMa
 from gmjax.reduction._vo_ma import vo_ma as vo_ma
 from gmjax.reduction._clustering import gauss_cluster as gauss_cluster
+from gmjax.reduction._eise import eise as eise
+from gmjax.reduction._eise import onehot_membership as onehot_membership
 from gmjax.reduction._eise import search_confidence as search_confidence
 from gmjax.reduction._gmrcm import GMRCM as GMRCM
 from gmjax.reduction._gmrcm import GMRCMState as GMRCMState
 from gmjax.reduction._gmrcm import gmrcm as gmrcm
 from gmjax.reduction._pcm import PCM as PCM
 from gmjax.reduction._pcm import pcm as pcm
+from gmjax.reduction import relax as relax
+from gmjax.reduction.relax import MODES as MODES
+from gmjax.reduction.relax import gated_prune as gated_prune
 
 __all__ = [
     "Reducer",
     "ReductionInfo",
     "make_info",
+    # relaxations (mode / temperature of the reducers)
+    "relax",
+    "MODES",
+    "gated_prune",
     # primitives
     "merge_moment",
     "merge_ci",
@@ -77,6 +91,8 @@ __all__ = [
     # clustering and the confidence search of PCM / GMRCM (seeds 000, 003)
     "gauss_cluster",
     "search_confidence",
+    "eise",
+    "onehot_membership",
     # costs
     "runnalls_cost",
     "salmond_cost",

@@ -1,4 +1,4 @@
-"""The Reducer protocol and the information every reducer returns (DESIGN §3)."""
+"""The Reducer protocol and the information every reducer returns (docs/design.md §3)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from gmjax._types import Array, PRNGKey
 from gmjax.mixture import GaussianMixture
 
-__all__ = ["ReductionInfo", "Reducer", "make_info"]
+__all__ = ["ReductionInfo", "Reducer", "EmptyState", "Stateless", "make_info"]
 
 
 class ReductionInfo(NamedTuple):
@@ -58,13 +58,48 @@ def make_info(
     )
 
 
-class Reducer(Protocol):
-    """A configured reduction: ``reducer(gm, *, key=None) -> (GaussianMixture, ReductionInfo)``.
+class EmptyState(NamedTuple):
+    """The state of a stateless reducer (no leaves), as optax's ``EmptyState``."""
 
-    Implementations are frozen :func:`gmjax._pytree.pytree_dataclass` configs whose static fields
-    are sizes / iteration counts and whose dynamic fields are thresholds.
+
+class Reducer(Protocol):
+    """The one reducer contract: a frozen pytree config that *is* the algorithm.
+
+    * ``init(capacity) -> state``: a fresh state for mixtures of ``capacity`` slots
+      (:class:`EmptyState` for stateless reducers);
+    * ``reduce(gm, state, *, key=None) -> (gm, state, ReductionInfo)``.
+
+    Static fields are sizes and iteration counts; the other fields (thresholds) are pytree leaves,
+    so ``jax.grad`` and optax reach them and changing them does not recompile. Every leaf of a
+    reducer state has a leading slot axis aligned with the mixture it describes: a filter that
+    expands each component into ``n`` children repeats each slot's entries ``n`` times
+    (``jnp.repeat(leaf, n, axis=0)``) before the next call, and a stateful reducer returns exactly
+    its configured ``capacity`` slots. ``reducer(gm, *, key=None) -> (gm, ReductionInfo)`` is the
+    same reduction from a fresh state.
     """
+
+    def init(self, capacity: int) -> Any: ...
+
+    def reduce(
+        self, gm: GaussianMixture, state: Any, *, key: PRNGKey | None = None
+    ) -> tuple[GaussianMixture, Any, ReductionInfo]: ...
 
     def __call__(
         self, gm: GaussianMixture, *, key: PRNGKey | None = None
     ) -> tuple[GaussianMixture, ReductionInfo]: ...
+
+
+class Stateless:
+    """Mixin giving a stateless reducer config (one that defines ``__call__``) the protocol."""
+
+    def init(self, capacity: int) -> EmptyState:
+        """The (empty) state; ``capacity`` is unused."""
+        del capacity
+        return EmptyState()
+
+    def reduce(
+        self, gm: GaussianMixture, state: Any, *, key: PRNGKey | None = None
+    ) -> tuple[GaussianMixture, Any, ReductionInfo]:
+        """``(reduced, state, info)``; the state passes through unchanged."""
+        out, info = self(gm, key=key)  # type: ignore[operator]
+        return out, state, info

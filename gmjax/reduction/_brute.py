@@ -12,7 +12,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.reduction._util import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 from gmjax.reduction._merge import merge_labels
 
 __all__ = ["brute_force", "BruteForce", "set_partitions", "MAX_PARTITIONS"]
@@ -110,7 +110,7 @@ def brute_force(
 
 
 @pytree_dataclass
-class BruteForce:
+class BruteForce(Stateless):
     """Reducer config for :func:`brute_force`."""
 
     num_out: int = static_field(3)

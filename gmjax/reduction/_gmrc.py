@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 from gmjax.reduction._greedy import _runnalls
 from gmjax.reduction._merge import merge_labels
 
@@ -104,7 +104,7 @@ def gmrc(
 
 
 @pytree_dataclass
-class GMRC:
+class GMRC(Stateless):
     """Reducer config for :func:`gmrc`."""
 
     num_out: int = static_field(10)

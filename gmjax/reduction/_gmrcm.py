@@ -23,7 +23,7 @@ for a merged cluster, the smallest count among its members (a cluster is "low fo
 if all its members were). The filter expands each output component into its children (prediction
 with ``L`` process-noise terms, update with ``J`` measurement-noise terms) and must give each child
 its parent's count, e.g. ``jnp.repeat(state.low_count, L * J)`` in the same slot order as the
-mixture, before the next call. A fresh state (:meth:`GMRCM.init_state`) is all zeros.
+mixture, before the next call. A fresh state (:meth:`GMRCM.init`) is all zeros.
 """
 
 from __future__ import annotations
@@ -202,8 +202,9 @@ def _gmrcm_core(gm, state, alpha, lam, lambda_range, temperature, tol, range_sca
 class GMRCM:
     """Config for :func:`gmrcm` (static: sizes and step counts; the rest are traced).
 
-    ``GMRCM()(gm)`` follows the Reducer protocol with a fresh state (no low-weight history);
-    a filter calls :meth:`step` with the state it carries.
+    A stateful :class:`~gmjax.reduction.Reducer`: :meth:`init` gives a fresh state (no low-weight
+    history), :meth:`reduce` reduces with the state a filter carries, and ``GMRCM()(gm)`` reduces
+    from a fresh state.
     """
 
     alpha: Any = 0.3
@@ -220,11 +221,11 @@ class GMRCM:
     dims: tuple[int, ...] | None = static_field(None)
     capacity: int | None = static_field(None)
 
-    def init_state(self, capacity: int) -> GMRCMState:
-        """A fresh state for input mixtures of ``capacity`` slots."""
+    def init(self, capacity: int) -> GMRCMState:
+        """A fresh state for mixtures of ``capacity`` slots."""
         return init_state(capacity)
 
-    def step(self, gm: GaussianMixture, state: GMRCMState | None, *,
+    def reduce(self, gm: GaussianMixture, state: GMRCMState | None, *,
              key: jax.Array | None = None) -> tuple[GaussianMixture, GMRCMState, ReductionInfo]:
         """One reduction with the carried state: ``(reduced, new_state, info)``."""
         return gmrcm(
@@ -236,5 +237,5 @@ class GMRCM:
         )
 
     def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
-        out, _, info = self.step(gm, None, key=key)
+        out, _, info = self.reduce(gm, None, key=key)
         return out, info

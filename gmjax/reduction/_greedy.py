@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, moments
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 
 __all__ = [
     "runnalls",
@@ -188,6 +188,7 @@ def _upper_argmin(s: _GState):
     returns ``(i, j, cost, lb)``.
     """
     K = s.w.shape[0]
+    cost_matrix = s.C
 
     def cond(c):
         _, _, tight, n = c
@@ -200,11 +201,16 @@ def _upper_argmin(s: _GState):
         tight = (true == lb[i]) | jnp.isinf(lb[i])
         return lb.at[i].set(true), i.astype(jnp.int32), tight, n + 1
 
+    # the search only picks indices: it runs on stopped values (a while_loop is not reverse-mode
+    # differentiable), and the selected cost is read from the differentiable matrix afterwards
+    C = jax.lax.stop_gradient(s.C)
+    s = s._replace(C=C)
     lb, i, _, _ = jax.lax.while_loop(
-        cond, body, (s.lb, jnp.zeros((), jnp.int32), jnp.asarray(False), jnp.zeros((), jnp.int32))
+        cond, body,
+        (jax.lax.stop_gradient(s.lb), jnp.zeros((), jnp.int32), jnp.asarray(False), jnp.zeros((), jnp.int32)),
     )
-    j = jnp.argmin(s.C[i, :]).astype(jnp.int32)
-    return i, j, s.C[i, j], lb
+    j = jnp.argmin(C[i, :]).astype(jnp.int32)
+    return i, j, cost_matrix[i, j], lb
 
 
 def _init_state(gm, C):
@@ -231,8 +237,15 @@ def _sequential(core):
     The O(K)-per-step greedy loop updates single rows and columns of the cost matrix in place;
     a vmapped version turns these into batched scatters over ``(B, K, K)`` and runs several times
     slower than mapping the per-mixture kernel over the batch.
+
+    A ``custom_vmap`` has no differentiation rule, so the sequential kernel is wrapped in a
+    ``custom_jvp`` whose rule differentiates ``core`` itself: ``jax.grad`` / ``jax.jacfwd`` work
+    (under ``vmap`` the derivative runs batched, the value sequentially).
     """
-    return jax.custom_batching.sequential_vmap(core)
+    seq = jax.custom_batching.sequential_vmap(core)
+    fn = jax.custom_jvp(lambda *args: seq(*args))
+    fn.defjvp(lambda primals, tangents: jax.jvp(core, primals, tangents))
+    return fn
 
 
 @partial(jax.jit, static_argnames=("num_out", "capacity"))
@@ -386,7 +399,7 @@ def west(
 
 
 @pytree_dataclass
-class Runnalls:
+class Runnalls(Stateless):
     """Reducer config for :func:`runnalls` (``threshold`` dynamic)."""
 
     num_out: int = static_field(10)
@@ -398,7 +411,7 @@ class Runnalls:
 
 
 @pytree_dataclass
-class Salmond:
+class Salmond(Stateless):
     """Reducer config for :func:`salmond` (``threshold`` dynamic)."""
 
     num_out: int = static_field(10)
@@ -410,7 +423,7 @@ class Salmond:
 
 
 @pytree_dataclass
-class West:
+class West(Stateless):
     """Reducer config for :func:`west` (``threshold`` dynamic)."""
 
     num_out: int = static_field(10)

@@ -24,7 +24,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.reduction._util import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 from gmjax.reduction._greedy import _merge_broadcast, west_distance
 
 __all__ = ["williams", "cowa", "Williams", "COWA", "optimal_weights"]
@@ -307,7 +307,7 @@ def cowa(
 
 
 @pytree_dataclass
-class Williams:
+class Williams(Stateless):
     """Reducer config for :func:`williams` (``threshold`` dynamic)."""
 
     num_out: int = static_field(10)
@@ -323,7 +323,7 @@ class Williams:
 
 
 @pytree_dataclass
-class COWA:
+class COWA(Stateless):
     """Reducer config for :func:`cowa` (``threshold`` dynamic)."""
 
     num_out: int = static_field(10)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 from gmjax.reduction._merge import merge_labels
 
 __all__ = ["kmeans", "KMeans", "weighted_mahalanobis_sq", "farthest_point_init"]
@@ -169,7 +169,7 @@ def kmeans(
 
 
 @pytree_dataclass
-class KMeans:
+class KMeans(Stateless):
     """Reducer config for :func:`kmeans` (all fields static)."""
 
     num_out: int = static_field(10)

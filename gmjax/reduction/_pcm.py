@@ -11,7 +11,24 @@
    needs the relaxation), falling back to the grid's best.
 
 Everything is a fixed-capacity array program: ``jit``, ``vmap`` over mixtures, and ``lax.scan`` in a
-filter work, and ``λ``, ``ρ``, ``α`` and the temperature are traced config fields.
+filter work, and ``λ``, ``ρ``, ``α`` and the temperatures are traced config fields.
+
+**Relaxation** (DESIGN §3; for differentiating a Monte Carlo loss in ``ρ`` and a fixed ``λ``). The
+static ``mode`` is ``"hard"`` (default: the paper's reduction above), ``"soft"`` or
+``"straight_through"``; the relaxed modes need a fixed ``lam``. Two temperatures, one per decision:
+
+* ``gate_temperature`` ``T_ρ`` (probability-mass units) relaxes step 2, the censored pruning, into
+  sigmoid gates (:func:`gmjax.reduction.relax.censored_gates`, as
+  ``PruneCensored(mode=..., temperature=T_ρ)``);
+* ``temperature`` ``τ`` (units of ``λ``) is the *same* relaxation of the clustering that the
+  confidence search uses: the kernel-smoothed memberships ``A(λ) = Σ_g π_g(λ) A_g`` over the grid
+  of ``grid_size`` points on ``lambda_range`` (:func:`gmjax.reduction.relax.soft_membership`). With
+  ``lam=None`` it smooths the EISE for Newton (and must be positive); with a fixed ``lam`` in a
+  relaxed mode every soft cluster is merged with its fractional memberships and costed by the
+  relaxed EISE (eq 29), and ``τ = 0`` is the hard clustering at ``lam``.
+
+``mode="soft"`` with ``T_ρ = τ = 0`` equals ``"hard"`` with the same ``lam`` exactly;
+``"straight_through"`` returns the hard output with the relaxation's gradient.
 """
 
 from __future__ import annotations
@@ -24,13 +41,29 @@ import jax.numpy as jnp
 
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike
-from gmjax.mixture import GaussianMixture
+from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 from gmjax.reduction._clustering import gauss_cluster
-from gmjax.reduction._eise import SearchResult, hard_eise, search_confidence
+from gmjax.reduction._eise import (
+    SearchResult,
+    eise,
+    hard_eise,
+    merge_membership,
+    onehot_membership,
+    search_confidence,
+)
 from gmjax.reduction._merge import merge_labels
 from gmjax.reduction._prune import prune_censored
+from gmjax.reduction.relax import (
+    censored_gates,
+    gated_prune,
+    negligible_floor,
+    soft_membership,
+    straight_through,
+    validate_mode,
+    validate_temperature,
+)
 
 __all__ = ["pcm", "PCM", "search_aux", "validate_search_args"]
 
@@ -47,8 +80,13 @@ def validate_search_args(
     newton_steps: int,
     dims: Sequence[int] | None,
     dim: int,
+    allow_zero_temperature: bool = False,
 ) -> None:
-    """Eager ``ValueError`` checks shared by :func:`pcm` and ``gmrcm`` (no-op on tracers)."""
+    """Eager ``ValueError`` checks shared by :func:`pcm` and ``gmrcm`` (no-op on tracers).
+
+    ``temperature`` must be positive (it smooths the search's EISE), or non-negative with
+    ``allow_zero_temperature`` (PCM's relaxed modes at a fixed ``λ``, where 0 is the hard rule).
+    """
     if len(tuple(lambda_range)) != 2:
         raise ValueError(f"lambda_range: expected (low, high), got {lambda_range!r}")
     lo, hi = lambda_range
@@ -62,6 +100,8 @@ def validate_search_args(
     _util.validate_nonneg(tol, "tol", allow_inf=False)
     for name, value in (("temperature", temperature), ("range_scale", range_scale)):
         _util.validate_nonneg(value, name, allow_inf=False)
+        if name == "temperature" and allow_zero_temperature:
+            continue
         if _util.is_concrete(value) and float(value) == 0.0:
             raise ValueError(f"{name}: must be positive, got {value!r}")
     _util.validate_count(grid_size, "grid_size", 2, 10_000)
@@ -118,9 +158,11 @@ def pcm(
     merge: str = "ci",
     prune: bool = True,
     capacity: int | None = None,
+    gate_temperature: Any = 0.0,
+    mode: str = "hard",
     key: jax.Array | None = None,
 ) -> tuple[GaussianMixture, ReductionInfo]:
-    """Prune-cluster-merge reduction (seed 000 Table 1 steps 2–7).
+    """Prune-cluster-merge reduction (seed 000 Table 1 steps 2–7), optionally relaxed.
 
     Args:
         gm: input mixture, capacity ``K`` (weights normalised or not; eq 41 rescales the survivors
@@ -132,7 +174,9 @@ def pcm(
         lambda_range: the search scope ``(low, high)`` (§IV-A: ``[1, 3]``).
         grid_size: static number of grid points of the search.
         newton_steps: static number of Newton–Raphson steps on the relaxed EISE (0: grid only).
-        temperature: relaxation temperature ``τ`` (about the grid spacing).
+        temperature: relaxation temperature ``τ`` of the clustering in units of ``λ`` (about the
+            grid spacing): the search's relaxed EISE when ``lam`` is ``None`` (must be positive),
+            the soft memberships at ``lam`` in the relaxed modes (``>= 0``; 0 is hard).
         tol: Newton's stopping tolerance on ``|Δλ|`` and on the relative EISE change.
         range_scale: the confidence scope is ``range_scale · λσ`` (see
             :mod:`gmjax.reduction._clustering`; 0.5 reproduces the papers' cluster counts).
@@ -142,6 +186,10 @@ def pcm(
         prune: static; ``False`` skips step 2 (as in the search-scope study of §IV-A).
         capacity: static output capacity (default ``K``); if more clusters survive, the heaviest
             are kept and ``info.overflow`` is set.
+        gate_temperature: ``T_ρ >= 0`` of the relaxed pruning gates, in units of probability mass
+            (traced; unused when ``mode="hard"``).
+        mode: static ``"hard"`` (default), ``"soft"`` or ``"straight_through"`` (module docstring;
+            the relaxed modes need a fixed ``lam``).
         key: unused (Reducer protocol).
 
     Returns:
@@ -149,6 +197,10 @@ def pcm(
         (``λ*``), ``n_clusters`` (``N'``), ``n_reference`` (``N``, components after pruning),
         ``lambda_grid``/``eise_grid`` (grid's best), ``lambda_newton``/``eise_newton`` (where
         Newton stopped, hard EISE there), ``iterations``, ``newton_ok`` and ``used_fallback``.
+        In the relaxed modes (see :func:`_soft_pcm_core`) ``info.cost`` is the relaxed EISE and
+        ``info.aux`` holds ``lambda``, ``n_clusters`` (hard ``N'``), ``n_reference`` (survivors of
+        the gated pruning), ``n_expected`` (expected output size, ``N'`` at zero temperatures) and
+        ``n_pruned_expected`` (``Σ`` of the pruning gates).
 
     Raises:
         ValueError: for a bad concrete mixture or an invalid option, naming the argument.
@@ -158,14 +210,24 @@ def pcm(
     _util.validate_range(rho, "rho", 0.0, 1.0)
     if merge not in ("ci", "moment"):
         raise ValueError(f"merge: expected 'ci' or 'moment', got {merge!r}")
+    validate_mode(mode)
+    if mode != "hard" and lam is None:
+        raise ValueError(f"lam: mode={mode!r} needs a fixed lam (the searched λ* is an argmin of a "
+                         "piecewise-constant EISE, with no useful gradient); set lam=...")
+    validate_temperature(gate_temperature, "gate_temperature")
     validate_search_args(lam=lam, lambda_range=lambda_range, alpha=alpha, temperature=temperature,
                          tol=tol, range_scale=range_scale, grid_size=grid_size,
-                         newton_steps=newton_steps, dims=dims, dim=gm.dim)
+                         newton_steps=newton_steps, dims=dims, dim=gm.dim,
+                         allow_zero_temperature=mode != "hard")
     if max_components is not None:
         max_components = _util.validate_count(max_components, "max_components", 1, 2**31 - 1)
     cap = _util.validate_capacity(capacity, gm)
     dims = None if dims is None else tuple(dims)
 
+    if mode != "hard":
+        return _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, tuple(lambda_range),
+                              range_scale, grid_size=grid_size, max_components=max_components,
+                              dims=dims, merge=merge, prune=prune, mode=mode, capacity=cap)
     return _pcm_core(gm, rho, alpha, lam, tuple(lambda_range), temperature, tol, range_scale,
                      max_components=max_components, grid_size=grid_size,
                      newton_steps=newton_steps, dims=dims, merge=merge, prune=prune, capacity=cap)
@@ -211,11 +273,105 @@ def _pcm_core(gm, rho, alpha, lam, lambda_range, temperature, tol, range_scale, 
     return out, info
 
 
+def _tree_select(pred, a, b):
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+
+
+def _gated_step(gm, rho, gate_temperature, relaxed, *, max_components, prune, mode, Kw):
+    """Step 2 with soft gates: ``(work, gates of work's slots, to_work labels, pruned mass,
+    overflow, Σ gates)``; ``prune=False`` passes ``gm`` through with unit gates."""
+    dtype = gm.means.dtype
+    if not prune:
+        live = gm.mask.astype(dtype)
+        slots = jnp.arange(gm.capacity, dtype=jnp.int32)
+        return (gm, live, jnp.where(gm.mask, slots, -1), jnp.zeros((), gm.weights.dtype),
+                jnp.zeros((), bool), jnp.sum(live))
+    gates = censored_gates(gm, rho, gate_temperature, max_components=max_components, mode=mode)
+    # a relaxed reducer (T_ρ or τ > 0) drops negligible components (see gated_prune)
+    floor = jnp.where(relaxed, negligible_floor(1.0, mode, dtype), 0.0)
+    work, pinfo = gated_prune(gm, gates, Kw, floor)
+    return (work, pinfo.aux["gates"], pinfo.labels, pinfo.pruned_mass, pinfo.overflow,
+            pinfo.aux["n_expected"])
+
+
+@partial(jax.jit, static_argnames=("grid_size", "max_components", "dims", "merge", "prune", "mode",
+                                   "capacity"))
+def _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, lambda_range, range_scale, *,
+                   grid_size, max_components, dims, merge, prune, mode, capacity):
+    """PCM at a fixed ``λ`` with relaxed pruning and relaxed memberships (``mode`` soft / ST).
+
+    The pruning uses :func:`censored_gates` (``T_ρ``) and the clustering :func:`soft_membership`
+    over the grid of ``grid_size`` points on ``lambda_range`` (``τ``); each cluster is merged with
+    the fractional memberships (:func:`gmjax.reduction._eise.merge_membership`, eqs 38–39 with
+    weights ``A_mc w_m``), and the cost is the EISE of eq 29 on the soft clusters (the relaxation
+    PCM's search minimises). With ``τ = 0`` the clustering, merge and cost are exactly the hard
+    ones at ``λ``; with ``T_ρ = 0`` too the output equals ``pcm(gm, rho=ρ, lam=λ)``.
+
+    Soft clusters: every cluster that some grid clustering forms near ``λ`` is an output slot with
+    its soft weight, so the relaxed output has more (light) components than the hard one; its
+    expected size is ``n_expected = Σ_g π_g Σ_c max_{m ∈ c_g} gate_m`` (a cluster exists when a
+    member survives the pruning), which equals ``N'`` at ``τ = T_ρ = 0``.
+    """
+    dtype = gm.means.dtype
+    K = gm.capacity
+    Kw = K if (not prune or max_components is None) else min(K, max_components)
+    T_lam = jnp.asarray(temperature, dtype)
+    relaxed = (jnp.asarray(gate_temperature, dtype) > 0) | (T_lam > 0)
+    work, g_work, to_work, pruned_mass, p_overflow, n_gates = _gated_step(
+        gm, rho, gate_temperature, relaxed, max_components=max_components, prune=prune, mode=mode,
+        Kw=Kw)
+    n_ref = jnp.sum(work.mask.astype(jnp.int32))
+    lo, hi = (jnp.asarray(v, dtype) for v in lambda_range)
+    grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, grid_size, dtype=dtype)
+    lam = jnp.asarray(lam, dtype)
+    A, pi, grid_labels, labels = soft_membership(work, lam, grid, T_lam, dims=dims, range_scale=range_scale)
+
+    # hard clustering at λ: exactly pcm(lam=λ)'s merge and EISE
+    merged_hard = merge_labels(work, labels, Kw, merge)
+    value_hard, _, n_hard = hard_eise(work, labels, alpha=alpha, method=merge, regularizer="exp",
+                                      ise_scale=0.5)
+    n_hard_f = n_hard.astype(dtype)
+
+    # soft clusters: fractional merge (eqs 38–39 with weights A_mc w_m) and the relaxed EISE (eq 29)
+    A_live = jnp.where(work.mask[:, None], A, 0.0)
+    merged_soft = merge_membership(work, A_live, merge)
+    onehots = jax.vmap(lambda lab: onehot_membership(lab, Kw, dtype))(grid_labels)  # (G, K, C)
+    exists = jnp.max(onehots * g_work[None, :, None], axis=1)  # (G, C)
+    n_soft = jnp.sum(pi[:, None] * exists)
+    value_soft = eise(work, A_live, merged_soft, n_soft, n_ref, alpha=alpha, regularizer="exp",
+                      ise_scale=0.5, clip=False)
+    soft_on = T_lam > 0  # τ = 0: the hard clustering, merged and costed exactly as pcm does
+    soft_f = _tree_select(soft_on, merged_soft, merged_hard)
+    soft_n = jnp.where(soft_on, n_soft, n_hard_f)
+    soft_v = jnp.where(soft_on, value_soft, value_hard)
+    if mode == "soft":
+        merged, value, n_exp = soft_f, soft_v, soft_n
+    else:  # straight-through: the hard clusters' values, the soft clusters' gradients
+        both = merged_hard.mask & soft_f.mask
+        st = lambda h, s: jnp.where(  # noqa: E731
+            both.reshape(both.shape + (1,) * (h.ndim - 1)), straight_through(h, s), h)
+        merged = GaussianMixture(st(merged_hard.weights, soft_f.weights), st(merged_hard.means, soft_f.means),
+                                 st(merged_hard.covs, soft_f.covs), merged_hard.mask)
+        value = straight_through(value_hard, soft_v)
+        n_exp = straight_through(n_hard_f, soft_n)
+    merged = sanitize(merged)
+    labels_in = jnp.where(to_work >= 0, labels[jnp.maximum(to_work, 0)], -1)
+    out, labels_out, overflow, _ = _util.finalize(gm, merged, labels_in, capacity)
+    aux = {"lambda": lam, "n_clusters": n_hard, "n_reference": n_ref, "n_expected": n_exp,
+           "n_pruned_expected": n_gates}
+    info = make_info(gm, out, labels_out, pruned_mass=pruned_mass, overflow=overflow | p_overflow,
+                     cost=value, aux=aux)
+    return out, info
+
+
 @pytree_dataclass
-class PCM:
-    """Reducer config for :func:`pcm` (static: sizes and step counts; the rest are traced).
+class PCM(Stateless):
+    """Reducer config for :func:`pcm` (static: sizes, step counts, ``mode``; the rest are traced).
 
     ``PCM()(gm)`` runs the paper's reduction with the searched ``λ``; set ``lam`` to fix it.
+    ``PCM(rho=ρ, lam=λ, mode="soft", gate_temperature=T_ρ, temperature=τ)`` is the relaxed
+    reduction, differentiable in ``ρ`` and ``λ`` (module docstring); zero temperatures give
+    ``PCM(rho=ρ, lam=λ)`` exactly.
     """
 
     rho: Any = 0.9544
@@ -232,6 +388,8 @@ class PCM:
     merge: str = static_field("ci")
     prune: bool = static_field(True)
     capacity: int | None = static_field(None)
+    gate_temperature: Any = 0.0
+    mode: str = static_field("hard")
 
     def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
         return pcm(
@@ -239,5 +397,5 @@ class PCM:
             lambda_range=self.lambda_range, grid_size=self.grid_size,
             newton_steps=self.newton_steps, temperature=self.temperature, tol=self.tol,
             range_scale=self.range_scale, dims=self.dims, merge=self.merge, prune=self.prune,
-            capacity=self.capacity, key=key,
+            capacity=self.capacity, gate_temperature=self.gate_temperature, mode=self.mode, key=key,
         )

@@ -3,6 +3,15 @@
 Every pruner keeps whole components, scales the survivors' weights so that the total weight is
 unchanged (for a normalised input: eq 41 of seed 000), and reports the removed weight in
 ``ReductionInfo.pruned_mass``. Survivors are stored heaviest first.
+
+The threshold and censored pruners carry a relaxation (DESIGN §3): a static ``mode``
+(``"hard"``, the default and the rule above; ``"soft"``; ``"straight_through"``) and a traced
+``temperature`` ``T``. In the relaxed modes every weight is scaled by a sigmoid gate of its
+decision margin (:func:`gmjax.reduction.relax.threshold_gates`,
+:func:`gmjax.reduction.relax.censored_gates`) and the survivors are renormalised
+(:func:`gmjax.reduction.relax.gated_prune`), so the output is differentiable in the threshold;
+``mode="soft"`` with ``T = 0`` is the hard rule exactly, and ``"straight_through"`` returns the hard
+output with the relaxation's gradient.
 """
 
 from __future__ import annotations
@@ -16,7 +25,16 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.relax import (
+    censored_gates,
+    gated_prune,
+    negligible_floor,
+    select_kept,
+    threshold_gates,
+    validate_mode,
+    validate_temperature,
+)
 
 __all__ = [
     "prune_threshold",
@@ -26,29 +44,6 @@ __all__ = [
     "PruneTop",
     "PruneCensored",
 ]
-
-
-def select_kept(gm: GaussianMixture, keep: jax.Array, w: jax.Array, capacity: int):
-    """Order the kept slots by weight, heaviest first (ties: lower slot index), in ``capacity`` slots.
-
-    Returns:
-        ``idx`` ``(capacity,)`` input slot of each output slot, ``valid`` ``(capacity,)`` whether it
-        holds a kept slot (at most ``capacity`` of them survive), and ``labels`` ``(K,)`` the output
-        slot of every input slot (``-1`` where it was dropped or is padding).
-    """
-    K = gm.capacity
-    score = jnp.where(keep, w, -jnp.inf)
-    if capacity <= K:
-        _, idx = jax.lax.top_k(score, capacity)
-        valid = keep[idx]
-    else:
-        _, idx_full = jax.lax.top_k(score, K)
-        idx = jnp.concatenate([idx_full, jnp.zeros(capacity - K, idx_full.dtype)])
-        valid = jnp.concatenate([keep[idx_full], jnp.zeros(capacity - K, bool)])
-    pos = jnp.full(K, -1, jnp.int32).at[idx].max(
-        jnp.where(valid, jnp.arange(capacity, dtype=jnp.int32), -1)
-    )
-    return idx, valid, jnp.where(gm.mask, pos, -1)
 
 
 @partial(jax.jit, static_argnames=("capacity",))
@@ -79,6 +74,8 @@ def prune_threshold(
     gm: GaussianMixture,
     threshold: Any,
     *,
+    temperature: Any = 0.0,
+    mode: str = "hard",
     capacity: int | None = None,
     key: jax.Array | None = None,
 ) -> tuple[GaussianMixture, ReductionInfo]:
@@ -87,19 +84,35 @@ def prune_threshold(
     Weights are compared as stored (``w_k < threshold`` is dropped); the survivors are scaled so the
     total weight is unchanged. If every component is below the threshold the heaviest is kept.
 
+    Relaxed modes: the gate of component ``k`` is ``σ((w_k - threshold) / T)``
+    (:func:`gmjax.reduction.relax.threshold_gates`), its weight becomes ``g_k w_k`` and the
+    survivors are renormalised (:func:`gmjax.reduction.relax.gated_prune`).
+
     Args:
         gm: input mixture, capacity ``K``.
-        threshold: ``()`` non-negative, may be traced (its gradient is 0 almost everywhere).
+        threshold: ``()`` non-negative, may be traced (in ``"hard"`` mode its gradient is 0 almost
+            everywhere).
+        temperature: ``()`` ``T >= 0`` of the relaxed modes, in weight units (traced; unused when
+            ``mode="hard"``).
+        mode: static ``"hard"`` (default), ``"soft"`` (``T = 0``: identical to ``"hard"``) or
+            ``"straight_through"`` (hard value, the soft gradient).
         capacity: static output capacity (default ``K``); on overflow the heaviest are kept.
         key: unused (Reducer protocol).
 
     Returns:
         ``(pruned mixture, info)``; ``info.pruned_mass`` is the removed weight (before renormalising).
+        In the relaxed modes ``info.aux`` also holds ``gates`` (the output slots' gates) and
+        ``n_expected`` (``Σ_k g_k``, the expected number of survivors).
     """
     del key
     _util.validate_mixture(gm)
     _util.validate_nonneg(threshold, "threshold")
+    validate_temperature(temperature)
+    validate_mode(mode)
     cap = _util.validate_capacity(capacity, gm)
+    if mode != "hard":
+        gates = threshold_gates(gm, threshold, temperature, mode=mode)
+        return gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))
     threshold = jnp.asarray(threshold, gm.weights.dtype)
     return _keep(gm, gm.mask & (gm.weights >= threshold), cap)
 
@@ -163,6 +176,8 @@ def prune_censored(
     rho: Any = 0.9544,
     max_components: int | None = None,
     *,
+    temperature: Any = 0.0,
+    mode: str = "hard",
     capacity: int | None = None,
     key: jax.Array | None = None,
 ) -> tuple[GaussianMixture, ReductionInfo]:
@@ -175,19 +190,38 @@ def prune_censored(
     summing to more than 1. We read it as the removed mass (limit ``I - N``), i.e. the kept weights
     are scaled to the input's total weight (1 for a normalised input).
 
+    Relaxed modes: the component of rank ``r`` (descending weights) gets the gate
+    ``σ((ρ W - c_r) / T)``, ``c_r`` the mass of the ``r`` heavier components
+    (:func:`gmjax.reduction.relax.censored_gates`; rank 0 always 1, ranks ``>= N_u`` always 0); its
+    weight becomes ``g_k w_k`` and the survivors are renormalised (eq 41,
+    :func:`gmjax.reduction.relax.gated_prune`).
+
     Args:
         gm: input mixture, capacity ``K``.
         rho: censoring threshold in ``[0, 1]`` (default 0.9544, the 2-sigma rule); may be traced.
         max_components: static cap ``N_u`` (default: no cap beyond the output capacity).
+        temperature: ``()`` ``T >= 0`` of the relaxed modes, in units of probability mass (traced;
+            unused when ``mode="hard"``).
+        mode: static ``"hard"`` (default), ``"soft"`` (``T = 0``: identical to ``"hard"``) or
+            ``"straight_through"``.
         capacity: static output capacity (default ``K``).
         key: unused.
+
+    Returns:
+        ``(pruned mixture, info)``; ``info.aux`` holds ``n_keep`` (``N``) in ``"hard"`` mode, and
+        ``gates`` and ``n_expected`` (``Σ_k g_k``) in the relaxed modes.
     """
     del key
     _util.validate_mixture(gm)
     _util.validate_range(rho, "rho", 0.0, 1.0)
+    validate_temperature(temperature)
+    validate_mode(mode)
     if max_components is not None:
         max_components = _util.validate_count(max_components, "max_components", 1, 2**31 - 1)
     cap = _util.validate_capacity(capacity, gm)
+    if mode != "hard":
+        gates = censored_gates(gm, rho, temperature, max_components=max_components, mode=mode)
+        return gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))
     rho = jnp.asarray(rho, gm.weights.dtype)
     return _prune_censored(gm, rho, max_components, cap)
 
@@ -207,18 +241,25 @@ def _prune_censored(gm, rho, max_components, cap):
 
 
 @pytree_dataclass
-class PruneThreshold:
-    """Reducer config for :func:`prune_threshold` (``threshold`` is dynamic)."""
+class PruneThreshold(Stateless):
+    """Reducer config for :func:`prune_threshold`.
+
+    ``threshold`` and ``temperature`` (the relaxation's ``T``, weight units) are dynamic; ``mode``
+    (``"hard"`` default, ``"soft"``, ``"straight_through"``) and ``capacity`` are static.
+    """
 
     threshold: Any = 1e-5
     capacity: int | None = static_field(None)
+    temperature: Any = 0.0
+    mode: str = static_field("hard")
 
     def __call__(self, gm, *, key=None):
-        return prune_threshold(gm, self.threshold, capacity=self.capacity, key=key)
+        return prune_threshold(gm, self.threshold, temperature=self.temperature, mode=self.mode,
+                               capacity=self.capacity, key=key)
 
 
 @pytree_dataclass
-class PruneTop:
+class PruneTop(Stateless):
     """Reducer config for :func:`prune_top`."""
 
     num_out: int = static_field(10)
@@ -229,14 +270,22 @@ class PruneTop:
 
 
 @pytree_dataclass
-class PruneCensored:
-    """Reducer config for :func:`prune_censored` (``rho`` is dynamic)."""
+class PruneCensored(Stateless):
+    """Reducer config for :func:`prune_censored`.
+
+    ``rho`` and ``temperature`` (the relaxation's ``T``, probability-mass units) are dynamic;
+    ``max_components``, ``capacity`` and ``mode`` (``"hard"`` default, ``"soft"``,
+    ``"straight_through"``) are static.
+    """
 
     rho: Any = 0.9544
     max_components: int | None = static_field(None)
     capacity: int | None = static_field(None)
+    temperature: Any = 0.0
+    mode: str = static_field("hard")
 
     def __call__(self, gm, *, key=None):
         return prune_censored(
-            gm, self.rho, self.max_components, capacity=self.capacity, key=key
+            gm, self.rho, self.max_components, temperature=self.temperature, mode=self.mode,
+            capacity=self.capacity, key=key,
         )

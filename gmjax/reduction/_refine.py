@@ -14,7 +14,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.reduction._util import ise
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 
 __all__ = ["ise_refine", "Refined"]
 
@@ -119,7 +119,7 @@ def ise_refine(
 
 
 @pytree_dataclass
-class Refined:
+class Refined(Stateless):
     """A reducer followed by :func:`ise_refine` against the reducer's input.
 
     Attributes:

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
+from gmjax.reduction._base import ReductionInfo, Stateless, make_info
 from gmjax.reduction._merge import merge_labels
 from gmjax.reduction._prune import _keep
 
@@ -70,7 +70,7 @@ def vo_ma(
     heaviest remaining ``j``, merge every remaining ``i`` with
     ``(m_i - m_j)^T P_i^{-1} (m_i - m_j) <= U`` (``merge_threshold``) moment-preservingly, and
     remove them; finally keep the ``J_max`` (``max_components``) heaviest. Unlike a PHD intensity,
-    the result is rescaled to the input's total weight (DESIGN: mixtures are returned normalised);
+    the result is rescaled to the input's total weight (docs/design.md §2: mixtures are returned normalised);
     ``info.pruned_mass`` is the weight removed before rescaling.
 
     Args:
@@ -94,7 +94,7 @@ def vo_ma(
 
 
 @pytree_dataclass
-class VoMa:
+class VoMa(Stateless):
     """Reducer config for :func:`vo_ma` (thresholds dynamic)."""
 
     prune_threshold: Any = 1e-5

@@ -1,4 +1,4 @@
-"""State-space models with additive Gaussian-mixture noises (DESIGN §3)."""
+"""State-space models with additive Gaussian-mixture noises (docs/design.md §3)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,20 @@ from typing import Callable, NamedTuple
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 
-__all__ = ["StateSpaceModel", "Scenario", "simulate"]
+__all__ = ["ModelParams", "StateSpaceModel", "Scenario", "simulate"]
+
+
+class ModelParams(NamedTuple):
+    """The numeric part of a :class:`StateSpaceModel`: what a filter's ``params`` hold (a pytree).
+
+    Each entry is a :class:`~gmjax.mixture.GaussianMixture`, or for single-Gaussian filters also a
+    ``(mean, cov)`` pair (e.g. :class:`gmjax.filters.GaussianState`). Replace a leaf to vmap or
+    differentiate a filter over it, e.g. ``params._replace(process_noise=q)``.
+    """
+
+    prior: GaussianMixture
+    process_noise: GaussianMixture
+    measurement_noise: GaussianMixture
 
 
 class StateSpaceModel(NamedTuple):
@@ -29,6 +42,11 @@ class StateSpaceModel(NamedTuple):
     prior: GaussianMixture
     f_jacobian: Callable[[Array, Array], Array] | None = None
     h_jacobian: Callable[[Array, Array], Array] | None = None
+
+    @property
+    def params(self) -> ModelParams:
+        """The noises and the prior as a :class:`ModelParams` pytree (the functions stay here)."""
+        return ModelParams(self.prior, self.process_noise, self.measurement_noise)
 
     @property
     def state_dim(self) -> int:

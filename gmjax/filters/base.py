@@ -1,0 +1,205 @@
+"""The one filter contract (see ``docs/design.md`` §3).
+
+Every filter of gmjax — the Gaussian local filters, the Gaussian sum filter, IMM, IMM-GSF, AGSSCKF,
+the seed 004 bank and the particle filters — is a :class:`Filter`: a NamedTuple of three pure
+functions and the default parameters they read.
+
+* ``init(params, prior, *, key) -> state`` (``prior=None``: the prior held in ``params``);
+* ``predict(params, state, inputs, *, key) -> state``;
+* ``update(params, state, z, inputs, *, key) -> (state, StepInfo)``.
+
+``params`` is a pytree (dynamax style): the model's noises and prior, a reducer config, thresholds.
+Nothing numeric is baked into the functions, so ``jax.vmap`` over parameter sets and ``jax.grad``
+with respect to a noise covariance or a pruning threshold go through :func:`run`. ``inputs`` is the
+per-step :class:`StepInputs` pytree (the time ``t``; room for ``dt``, a control and filter-specific
+``aux`` data such as the bank's true active cluster). The PRNG key is passed on every call (``None``
+is accepted by filters that draw nothing); no key is hidden in a state. :class:`StepInfo` is the one
+report every filter returns, with the fields every consumer reads and an ``extra`` dict for what is
+filter-specific.
+
+Time indexing of :func:`run`: the initial state describes ``x_0``; step ``k = 0 .. T-1`` predicts to
+``inputs.t[k]`` and updates with ``zs[k]``, so ``states[k]`` is the posterior at ``inputs.t[k]``
+given ``zs[:k+1]``. The default times are ``1, 2, ..., T``. A measurement holding a NaN is a
+predict-only step (log-likelihood 0).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from gmjax._types import Array, PRNGKey
+from gmjax.mixture import GaussianMixture
+
+__all__ = ["StepInputs", "StepFlags", "StepInfo", "Filter", "step_inputs", "no_flags", "run"]
+
+
+class StepInputs(NamedTuple):
+    """Per-step inputs of a filter (a pytree; :func:`run` scans over a leading ``T`` axis).
+
+    Attributes:
+        t: ``()`` the time passed to the model's ``f(x, t)`` and ``h(x, t)`` (an int step index by
+            default).
+        dt: ``()`` the step length, or ``None``.
+        control: a control input ``u_k``, or ``None``.
+        aux: filter-specific per-step data, or ``None`` (the ``matched`` bank filter reads the true
+            active cluster pair ``(2,)`` int here).
+    """
+
+    t: Array
+    dt: Array | None = None
+    control: Any = None
+    aux: Any = None
+
+
+class StepFlags(NamedTuple):
+    """What went wrong in a step (``()`` bools; inside ``jit`` failures are data, not exceptions).
+
+    Attributes:
+        repaired: a covariance was not numerically positive definite and was repaired.
+        overflow: more components survived than the capacity holds (the heaviest were kept).
+        degenerate: every likelihood underflowed (weights kept at their predicted values), or a
+            particle cloud collapsed.
+    """
+
+    repaired: Array
+    overflow: Array
+    degenerate: Array
+
+    def any(self) -> Array:
+        """``()`` bool: any flag raised."""
+        return self.repaired | self.overflow | self.degenerate
+
+
+def no_flags() -> StepFlags:
+    """All flags down."""
+    f = jnp.zeros((), bool)
+    return StepFlags(f, f, f)
+
+
+class StepInfo(NamedTuple):
+    """The per-step report of every filter's ``update``.
+
+    Attributes:
+        mean: ``(d,)`` the point estimate (for Gaussian sum filters the moments of the updated
+            mixture before reduction, seed 000 eq 17).
+        cov: ``(d, d)`` its covariance (eq 18).
+        loglik: ``()`` ``log p(z_k | z_{1:k-1})`` under the filter (0 on a predict-only step).
+        n_components: ``()`` int32, live mixture components after the step (1 for filters that keep
+            no mixture: single-Gaussian and particle filters).
+        flags: :class:`StepFlags`.
+        reduction: the reducer's :class:`~gmjax.reduction.ReductionInfo`, or ``None`` for filters
+            that do not reduce.
+        extra: a dict of filter-specific diagnostics (documented by each builder).
+    """
+
+    mean: Array
+    cov: Array
+    loglik: Array
+    n_components: Array
+    flags: StepFlags
+    reduction: Any = None
+    extra: dict[str, Any] = {}
+
+
+class Filter(NamedTuple):
+    """A filter: pure functions of ``(params, state, ...)`` and the default ``params``.
+
+    Attributes:
+        init: ``(params, prior: GaussianMixture | None, *, key) -> state``.
+        predict: ``(params, state, inputs: StepInputs, *, key) -> state``.
+        update: ``(params, state, z (m,), inputs: StepInputs, *, key) -> (state, StepInfo)``; a ``z``
+            holding a NaN is a predict-only step.
+        params: the default parameter pytree (from the model and the configuration); replace it to
+            vmap, differentiate or tune.
+    """
+
+    init: Callable[..., Any]
+    predict: Callable[..., Any]
+    update: Callable[..., tuple[Any, StepInfo]]
+    params: Any = None
+
+
+def step_inputs(n_steps: int, inputs: Any = None) -> StepInputs:
+    """Normalise what :func:`run` accepts as inputs into a :class:`StepInputs` with a ``T`` axis.
+
+    Args:
+        n_steps: ``T``.
+        inputs: ``None`` (times ``1..T``), an array ``(T,)`` of times, or a :class:`StepInputs`
+            whose leaves have a leading ``T`` axis.
+
+    Raises:
+        ValueError: a leaf without the leading ``T`` axis, naming the field.
+    """
+    if inputs is None:
+        return StepInputs(t=jnp.arange(1, n_steps + 1, dtype=jnp.int32))
+    if not isinstance(inputs, StepInputs):
+        inputs = StepInputs(t=jnp.asarray(inputs))
+    for name, value in zip(StepInputs._fields, inputs):
+        for leaf in jax.tree_util.tree_leaves(value):
+            shape = jnp.shape(leaf)
+            if not shape or shape[0] != n_steps:
+                raise ValueError(
+                    f"inputs.{name}: expected a leading axis of length T={n_steps} (one entry per "
+                    f"measurement), got shape {shape}"
+                )
+    return inputs
+
+
+def check_measurements(zs: Array) -> Array:
+    """``zs`` as an array of shape ``(T, m)``."""
+    zs = jnp.asarray(zs)
+    if zs.ndim != 2:
+        raise ValueError(f"zs: expected shape (T, m), got {zs.shape}")
+    return zs
+
+
+def run(
+    filter: Filter,
+    zs: Array,
+    inputs: Any = None,
+    *,
+    key: PRNGKey | None = None,
+    params: Any = None,
+    prior: GaussianMixture | None = None,
+    init_state: Any = None,
+) -> tuple[Any, StepInfo]:
+    """Run any :class:`Filter` over a measurement sequence with one ``lax.scan``.
+
+    Args:
+        filter: the filter.
+        zs: ``(T, m)`` measurements; a row holding a NaN is a predict-only step.
+        inputs: per-step inputs: ``None`` (times ``1..T``), a ``(T,)`` array of times, or a
+            :class:`StepInputs` with a leading ``T`` axis.
+        key: PRNG key (required by filters that draw: particle filters, randomised reducers);
+            ``init`` gets one split and step ``k`` the ``k``-th of ``jax.random.split(rest, T)``,
+            split again between predict and update.
+        params: parameters (default ``filter.params``).
+        prior: the prior of ``x_0`` (default: the one in ``params``).
+        init_state: a ready initial state; overrides ``prior``.
+
+    Returns:
+        ``(states, infos)`` with a leading ``T`` axis; ``infos`` is a :class:`StepInfo`.
+    """
+    zs = check_measurements(zs)
+    n_steps = zs.shape[0]
+    inputs = step_inputs(n_steps, inputs)
+    params = filter.params if params is None else params
+    if key is None:
+        k_init, step_keys = None, None
+    else:
+        k_init, k_steps = jax.random.split(key)
+        step_keys = jax.random.split(k_steps, n_steps)
+    state0 = filter.init(params, prior, key=k_init) if init_state is None else init_state
+
+    def step(state, xs):
+        z, inp, k = xs
+        k_pred, k_upd = (None, None) if k is None else jax.random.split(k)
+        state = filter.predict(params, state, inp, key=k_pred)
+        state, info = filter.update(params, state, z, inp, key=k_upd)
+        return state, (state, info)
+
+    _, (states, infos) = jax.lax.scan(step, state0, (zs, inputs, step_keys))
+    return states, infos
