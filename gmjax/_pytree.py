@@ -27,9 +27,27 @@ def pytree_dataclass(cls: type[T]) -> type[T]:
     """Decorate ``cls`` as a frozen dataclass registered as a pytree.
 
     Fields declared with :func:`static_field` go into the tree definition; the rest are children.
+    The tree definition carries the class itself beside the static values: two configs of different
+    classes with equal static fields (``PruneTop(num_out=3)``, ``BruteForce(num_out=3)``) must never
+    compare equal as tree structures, or a ``jit`` cache could serve one the other's compiled code
+    (``register_dataclass`` compares only the static values).
     """
     cls = dataclasses.dataclass(frozen=True)(cls)
     fields = dataclasses.fields(cls)
-    data_names = [f.name for f in fields if not f.metadata.get("static", False)]
-    meta_names = [f.name for f in fields if f.metadata.get("static", False)]
-    return jax.tree_util.register_dataclass(cls, data_fields=data_names, meta_fields=meta_names)
+    data_names = tuple(f.name for f in fields if not f.metadata.get("static", False))
+    meta_names = tuple(f.name for f in fields if f.metadata.get("static", False))
+
+    def flatten(obj):
+        children = [(jax.tree_util.GetAttrKey(n), getattr(obj, n)) for n in data_names]
+        return children, (cls, tuple(getattr(obj, n) for n in meta_names))
+
+    def unflatten(aux, children):
+        obj = object.__new__(cls)
+        for name, value in zip(meta_names, aux[1]):
+            object.__setattr__(obj, name, value)
+        for name, value in zip(data_names, children):
+            object.__setattr__(obj, name, value)
+        return obj
+
+    jax.tree_util.register_pytree_with_keys(cls, flatten, unflatten)
+    return cls

@@ -233,3 +233,14 @@ def test_every_filter_runs_through_the_one_driver(name):
         h = 1e-6
         fd = float((jax.jit(total)(h) - jax.jit(total)(-h)) / (2 * h))
         np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6)
+
+
+def test_configs_of_different_classes_never_share_a_tree_structure():
+    """Equal static fields, different algorithms: a jit cache must not mix them up (seen in CI)."""
+    a = jax.tree_util.tree_structure(reduction.PruneTop(num_out=3))
+    b = jax.tree_util.tree_structure(reduction.BruteForce(num_out=3))
+    assert a != b
+    gm = _mixture(0)
+    f = jax.jit(lambda r, g: drive(r, g, None)[0].weights)
+    np.testing.assert_allclose(f(reduction.BruteForce(num_out=3), gm), drive(reduction.BruteForce(num_out=3), gm, None)[0].weights, rtol=1e-10)
+    np.testing.assert_allclose(f(reduction.PruneTop(num_out=3), gm), drive(reduction.PruneTop(num_out=3), gm, None)[0].weights, rtol=1e-10)
