@@ -2,12 +2,98 @@
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+import inspect
+from typing import Any, Callable, NamedTuple
+
+import jax.numpy as jnp
 
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 
-__all__ = ["ModelParams", "StateSpaceModel", "Scenario", "simulate"]
+__all__ = [
+    "ModelParams",
+    "StateSpaceModel",
+    "Scenario",
+    "simulate",
+    "call_convention",
+    "as_step_fn",
+    "wrap_angles",
+    "CALL_CONVENTIONS",
+]
+
+CALL_CONVENTIONS = ("t", "u,t", "inputs")
+
+
+def call_convention(fn: Callable, call: str = "auto", name: str = "f") -> str:
+    """How a model function is called: ``"t"`` (``fn(x, t)``), ``"u,t"`` (``fn(x, u, t)`` with the
+    control ``u``) or ``"inputs"`` (``fn(x, inputs)`` with the whole
+    :class:`~gmjax.filters.StepInputs`: ``t``, ``dt``, ``control``, ``aux``).
+
+    ``call="auto"`` reads the arity once (when the model is checked, never inside ``jit``): three
+    positional parameters mean ``"u,t"``, anything else ``"t"``.
+
+    Raises:
+        ValueError: an unknown ``call``.
+    """
+    if call != "auto":
+        if call not in CALL_CONVENTIONS:
+            raise ValueError(f"call: expected 'auto' or one of {CALL_CONVENTIONS}, got {call!r}")
+        return call
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return "t"
+    kinds = [p.kind for p in params]
+    if inspect.Parameter.VAR_POSITIONAL in kinds:
+        return "t"
+    n_pos = sum(k in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+                for k in kinds)
+    return "u,t" if n_pos == 3 else "t"
+
+
+def _is_step_inputs(s: Any) -> bool:
+    from gmjax.filters.base import StepInputs
+
+    return isinstance(s, StepInputs)
+
+
+def as_step_fn(fn: Callable | None, call: str = "auto", name: str = "f") -> Callable | None:
+    """``fn`` as ``g(x, s)`` where ``s`` is a :class:`~gmjax.filters.StepInputs` (or, for code that
+    still passes a bare time, the time ``t``), whatever ``fn``'s :func:`call_convention`.
+
+    The convention is resolved here, once; the returned function only dispatches on the Python type
+    of ``s`` (at trace time). Wrapping twice is harmless.
+    """
+    if fn is None or getattr(fn, "_gmjax_step_fn", False):
+        return fn
+    conv = call_convention(fn, call, name)
+
+    if conv == "t":
+        def g(x, s):
+            return fn(x, s.t if _is_step_inputs(s) else s)
+    elif conv == "u,t":
+        def g(x, s):
+            return fn(x, s.control, s.t) if _is_step_inputs(s) else fn(x, None, s)
+    else:
+        def g(x, s):
+            if _is_step_inputs(s):
+                return fn(x, s)
+            from gmjax.filters.base import StepInputs
+
+            return fn(x, StepInputs(t=s))
+
+    g._gmjax_step_fn = True  # type: ignore[attr-defined]
+    g.__wrapped_model_fn__ = fn  # type: ignore[attr-defined]
+    return g
+
+
+def wrap_angles(y: Array, angle_dims: tuple[int, ...]) -> Array:
+    """Wrap the components ``angle_dims`` of ``y (..., m)`` into ``[-pi, pi)`` (others unchanged)."""
+    if not angle_dims:
+        return y
+    idx = jnp.asarray(angle_dims)
+    wrapped = jnp.mod(y[..., idx] + jnp.pi, 2 * jnp.pi) - jnp.pi
+    return y.at[..., idx].set(wrapped)
 
 
 class ModelParams(NamedTuple):
@@ -26,13 +112,27 @@ class ModelParams(NamedTuple):
 class StateSpaceModel(NamedTuple):
     """``x_k = f(x_{k-1}, k) + v_k``, ``z_k = h(x_k, k) + w_k`` with GM noises.
 
+    Time indexing: step ``k`` of :func:`gmjax.filters.run` calls ``f`` and ``h`` with the step's
+    inputs (``inputs.t[k]``, ``inputs.dt[k]``, ``inputs.control[k]``): ``f`` maps the previous state
+    to the state *at* ``t[k]`` (the index of the output state), ``h`` measures the state at ``t[k]``.
+
     Attributes:
-        f: ``f(x (d,), t) -> (d,)`` traceable transition.
-        h: ``h(x (d,), t) -> (m,)`` traceable measurement function.
+        f: the transition, ``f(x (d,), t) -> (d,)``; or ``f(x, u, t)`` with a control input ``u``
+            (``inputs.control``); or ``f(x, inputs)`` with the whole
+            :class:`~gmjax.filters.StepInputs` (``call="inputs"``; e.g. to use ``inputs.dt``).
+        h: the measurement function, same conventions (``h(x, t)``, ``h(x, u, t)``, ``h(x, inputs)``).
         process_noise: GM of ``v`` (dim ``d``); a single Gaussian is a 1-component mixture.
         measurement_noise: GM of ``w`` (dim ``m``).
         prior: GM of ``x_0`` (dim ``d``).
-        f_jacobian, h_jacobian: optional ``(x, t) -> (d, d) / (m, d)``; default ``jax.jacfwd``.
+        f_jacobian, h_jacobian: optional, same call convention as ``f`` / ``h``, returning
+            ``(d, d) / (m, d)``; default ``jax.jacfwd``.
+        angle_dims: measurement components that are angles (radians): every filter wraps their
+            innovations into ``[-pi, pi)`` and averages them on the circle.
+        process_noise_at: optional ``(noise: GaussianMixture, inputs) -> GaussianMixture``, the
+            step's process noise from the one in ``params`` (e.g. ``Q(dt)``; see
+            :func:`gmjax.models.library.noise_scaler`). ``None``: the same noise every step.
+        call: ``"auto"`` (by arity: 3 positional parameters mean ``(x, u, t)``, else ``(x, t)``),
+            ``"t"``, ``"u,t"`` or ``"inputs"``; read once when a filter is built.
     """
 
     f: Callable[[Array, Array], Array]
@@ -42,6 +142,21 @@ class StateSpaceModel(NamedTuple):
     prior: GaussianMixture
     f_jacobian: Callable[[Array, Array], Array] | None = None
     h_jacobian: Callable[[Array, Array], Array] | None = None
+    angle_dims: tuple[int, ...] = ()
+    process_noise_at: Callable[[GaussianMixture, Any], GaussianMixture] | None = None
+    call: str = "auto"
+
+    def step_fns(self) -> tuple[Callable, Callable, Callable | None, Callable | None]:
+        """``(f, h, f_jacobian, h_jacobian)`` as ``g(x, inputs)`` (see :func:`as_step_fn`)."""
+        return (as_step_fn(self.f, self.call, "f"), as_step_fn(self.h, self.call, "h"),
+                as_step_fn(self.f_jacobian, self.call, "f_jacobian"),
+                as_step_fn(self.h_jacobian, self.call, "h_jacobian"))
+
+    def noise_at(self, noise: GaussianMixture, inputs: Any) -> GaussianMixture:
+        """The step's process noise: ``process_noise_at(noise, inputs)``, or ``noise`` unchanged."""
+        if self.process_noise_at is None or not _is_step_inputs(inputs):
+            return noise
+        return self.process_noise_at(noise, inputs)
 
     @property
     def params(self) -> ModelParams:
