@@ -12,6 +12,9 @@ Model level: every filter is one :class:`Filter` ``(init, predict, update, param
 Gaussian sum filter (GM prior and noises, any local filter, any reducer; :mod:`gmjax.filters.gsf`),
 seed 001's adaptive split-merge AGSSCKF (:mod:`gmjax.filters.agsf`), and seed 004's linear bank with
 the active-cluster reduction (:mod:`gmjax.filters.bank`).
+
+Smoothers (:mod:`gmjax.filters.smoother`): ``rts_smoother`` (KF/EKF and the sigma-point URTS),
+``rts_linear`` and the Gaussian-sum ``gaussian_sum_smoother``.
 """
 
 from gmjax.filters.base import Filter as Filter
@@ -74,6 +77,10 @@ from gmjax.filters.agsf import build_agsf as build_agsf
 from gmjax.filters.agsf import build_gsckf as build_gsckf
 from gmjax.filters.agsf import build_gsukf as build_gsukf
 from gmjax.filters.agsf import degree_of_nonlinearity as degree_of_nonlinearity
+from gmjax.filters import smoother as smoother  # noqa: E402
+from gmjax.filters.smoother import gaussian_sum_smoother as gaussian_sum_smoother
+from gmjax.filters.smoother import rts_linear as rts_linear
+from gmjax.filters.smoother import rts_smoother as rts_smoother
 
 __all__ = [
     "Filter",
@@ -136,4 +143,8 @@ __all__ = [
     "build_gsckf",
     "build_gsukf",
     "degree_of_nonlinearity",
+    "smoother",
+    "rts_smoother",
+    "rts_linear",
+    "gaussian_sum_smoother",
 ]
