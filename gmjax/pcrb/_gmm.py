@@ -32,7 +32,7 @@ from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture, from_gaussian, pad, sanitize
-from gmjax.pcrb._model import PCRBModel, check_model, prior_information
+from gmjax.pcrb._model import PCRBModel, as_pcrb_model, prior_information
 from gmjax.pcrb._recursion import PCRBResult, bounds_from_information, inv_pd, pcrb_step
 from gmjax.quadrature import SigmaPoints, unscented
 from gmjax.reduction import kmeans
@@ -319,7 +319,11 @@ def build_pcrb_gmm(
     (Long because the per-step body of Algorithms 1-2 closes over the model, the rule and the static
     config; each stage it calls is its own function above.)
     """
-    check_model(model)
+    model = as_pcrb_model(model)
+    if isinstance(model.Q, GaussianMixture) or isinstance(model.R, GaussianMixture):
+        raise ValueError(
+            "model: pcrb_gmm propagates Gaussian noise only (eqs 51-68); for Gaussian-mixture noise "
+            "use pcrb_mc or pcrb_linear")
     config = GMMPCRBConfig() if config is None else config
     _validate_config(config, model)
     d = model.state_dim

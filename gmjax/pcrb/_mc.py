@@ -19,8 +19,9 @@ import numpy as np
 
 from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.mixture import sample as sample_mixture
-from gmjax.pcrb._model import PCRBModel, check_model, prior_information
-from gmjax.pcrb._recursion import PCRBResult, bounds_from_information, inv_pd, pcrb_step
+from gmjax.pcrb._model import PCRBModel, as_pcrb_model, prior_information
+from gmjax.pcrb._noise import noise_information
+from gmjax.pcrb._recursion import PCRBResult, bounds_from_information, pcrb_step
 
 __all__ = ["MCInfo", "pcrb_mc", "mc_expectations", "pcrb_from_expectations"]
 
@@ -47,12 +48,8 @@ class MCInfo(NamedTuple):
 def _chunk_sums(model: PCRBModel, key: PRNGKey, n_valid: Array, *, n_steps: int, chunk_size: int):
     """Per-step sums over one chunk: ``(T, d, d)`` of ``F^T Q^-1 F``, ``F``, ``H^T R^-1 H``."""
     dtype = model.prior.means.dtype
-    Q = jnp.asarray(model.Q, dtype)
-    R = jnp.asarray(model.R, dtype)
-    Qi = inv_pd(Q)
-    Ri = inv_pd(R)
-    LQ = jnp.linalg.cholesky(Q)
-    d = Q.shape[-1]
+    Qi = model.process_information(dtype)  # Q^-1, or the Fisher information of a GM noise
+    Ri = model.measurement_information(dtype)
     k0, kw = jax.random.split(key)
     x0 = sample_mixture(model.prior, k0, chunk_size)
     valid = (jnp.arange(chunk_size) < n_valid).astype(dtype)
@@ -62,7 +59,7 @@ def _chunk_sums(model: PCRBModel, key: PRNGKey, n_valid: Array, *, n_steps: int,
         F = jax.vmap(model.jac_f, (0, None))(x, n)  # (N, d, d)
         s11 = jnp.einsum("s,sji,jk,skl->il", valid, F, Qi, F)
         sF = jnp.einsum("s,sij->ij", valid, F)
-        w = jax.random.normal(k, (chunk_size, d), dtype) @ LQ.T
+        w = model.sample_process_noise(k, chunk_size, dtype)
         x1 = jax.vmap(model.f, (0, None))(x, n) + w
         H = jax.vmap(model.jac_h, (0, None))(x1, n + 1)  # (N, m, d)
         s22 = jnp.einsum("s,sji,jk,skl->il", valid, H, Ri, H)
@@ -74,16 +71,20 @@ def _chunk_sums(model: PCRBModel, key: PRNGKey, n_valid: Array, *, n_steps: int,
     return sums
 
 
-@jax.jit
-def pcrb_from_expectations(
-    J0: ArrayLike, D11: ArrayLike, EF: ArrayLike, EHRH: ArrayLike, Q: ArrayLike
-) -> Array:
-    """Run eq 4 from ``J_0`` given ``E[F^T Q^-1 F]``, ``E[F]`` and ``E[H^T R^-1 H]`` per step.
+def pcrb_from_expectations(J0: ArrayLike, D11: ArrayLike, EF: ArrayLike, EHRH: ArrayLike, Q) -> Array:
+    """Run eq 4 from ``J_0`` given ``E[F^T I_Q F]``, ``E[F]`` and ``E[H^T I_R H]`` per step.
+
+    ``Q`` is the process-noise covariance or a :class:`~gmjax.mixture.GaussianMixture`; ``I_Q`` is
+    ``Q^-1`` or the mixture's Fisher information (:func:`gmjax.pcrb.noise_information`).
 
     Returns ``(T + 1, d, d)`` FIMs ``J_0..J_T``.
     """
     J0 = jnp.asarray(J0)
-    Qi = inv_pd(jnp.asarray(Q, J0.dtype))
+    return _from_expectations(J0, D11, EF, EHRH, noise_information(Q, dtype=J0.dtype))
+
+
+@jax.jit
+def _from_expectations(J0, D11, EF, EHRH, Qi) -> Array:
 
     def step(J, inp):
         d11, ef, ehrh = inp
@@ -170,12 +171,15 @@ def pcrb_mc(
     """Monte Carlo PCRB (seed 002 eqs 4-8 with sample averages, eq 73).
 
     ``D11 = E[F^T Q^-1 F]`` and ``D12 = -E[F]^T Q^-1`` average over ``x_n``; ``D22 = Q^-1 +
-    E[H^T R^-1 H]`` over ``x_{n+1}``, all on the same simulated trajectories. Chunks are compiled
-    once (fixed size; the last one is masked), the loop over chunks runs in Python and prints a
-    progress bar to stderr.
+    E[H^T R^-1 H]`` over ``x_{n+1}``, all on the same simulated trajectories. With Gaussian-mixture
+    noises ``Q^-1`` and ``R^-1`` are the noises' Fisher informations (by quadrature,
+    :func:`gmjax.pcrb.noise_information`) and the trajectories sample the mixture. Chunks are
+    compiled once (fixed size; the last one is masked), the loop over chunks runs in Python and
+    prints a progress bar to stderr.
 
     Args:
-        model: a :class:`PCRBModel`.
+        model: a :class:`PCRBModel`, or a :class:`~gmjax.models.StateSpaceModel` (converted by
+            :func:`gmjax.pcrb.from_state_space_model`).
         n_steps: ``T`` (static).
         n_samples: number of trajectories ``N``.
         key: PRNG key (keyword-only).
@@ -187,7 +191,7 @@ def pcrb_mc(
         :class:`PCRBResult` with an :class:`MCInfo` (including a batch-means standard error of the
         bound over chunks).
     """
-    check_model(model)
+    model = as_pcrb_model(model)
     if int(n_samples) < 1:
         raise ValueError(f"n_samples: must be >= 1, got {n_samples}")
     if int(n_steps) < 1:
@@ -203,13 +207,12 @@ def pcrb_mc(
     EF = np.einsum("c,ctij->tij", wts, EFc)
     EH = np.einsum("c,ctij->tij", wts, EHc)
     dtype = model.prior.means.dtype
-    Q = jnp.asarray(model.Q, dtype)
-    Js = pcrb_from_expectations(J0, jnp.asarray(D11, dtype), jnp.asarray(EF, dtype),
-                                jnp.asarray(EH, dtype), Q)
+    Qi = model.process_information(dtype)
+    Js = _from_expectations(J0, jnp.asarray(D11, dtype), jnp.asarray(EF, dtype), jnp.asarray(EH, dtype), Qi)
     bound = bounds_from_information(Js)
     n_chunks = len(counts)
     if n_chunks >= 2:
-        per = jax.vmap(lambda a, b, c: bounds_from_information(pcrb_from_expectations(J0, a, b, c, Q)))(
+        per = jax.vmap(lambda a, b, c: bounds_from_information(_from_expectations(J0, a, b, c, Qi)))(
             jnp.asarray(D11c, dtype), jnp.asarray(EFc, dtype), jnp.asarray(EHc, dtype)
         )
         per = np.asarray(per, np.float64)
@@ -218,7 +221,7 @@ def pcrb_mc(
         stderr = np.sqrt(var / n_chunks)
     else:
         stderr = np.full(np.shape(bound), np.nan)
-    Qi = np.linalg.inv(np.asarray(Q, np.float64))
+    Qi = np.asarray(Qi, np.float64)
     info = MCInfo(
         n_samples=int(n_samples),
         n_chunks=n_chunks,
