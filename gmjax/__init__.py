@@ -9,6 +9,8 @@ Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`
 :mod:`tune` (differentiable threshold tuning), :mod:`studies`.
 """
 
+from importlib import metadata as _metadata
+
 from gmjax import gaussian as gaussian
 from gmjax import metrics as metrics
 from gmjax import mixture as mixture
@@ -23,7 +25,10 @@ from gmjax import tune as tune
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("gmjax")
+except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0.0.0+unknown"
 
 __all__ = [
     "GaussianMixture",
