@@ -112,7 +112,10 @@ __all__ = [
 class AGSFConfig:
     """Configuration of :func:`build_agsf` (defaults: seed 001 §4).
 
-    Static fields (changing them recompiles):
+    Static fields change the compiled code (changing them recompiles). Traced fields are thresholds:
+    differentiable, no recompilation; the filter reads them from ``params.config`` at every call.
+
+    Static fields:
         n_max: ``N_max``, the largest number of sub-filters (15).
         capacity: working slots of Steps 2–6 (default ``None`` = ``n_max``); the posterior keeps
             ``capacity // q`` slots (``q`` process-noise components). See the module docstring.
@@ -120,8 +123,7 @@ class AGSFConfig:
         split_gate: ``(psi, threshold) -> gate in [0, 1]``; ``None`` is the hard step
             ``psi >= threshold`` (the paper).
 
-    Traced fields (thresholds; differentiable, no recompilation; the filter reads them from
-    ``params.config`` at every call):
+    Traced fields:
         psi_th: ``psi_threshold`` of eqs 30–31 (0.02). ``inf`` disables splitting (GSCKF).
         r: common ratio of eq 31 (1.5).
         l: displacement of eq 32 (0.5).
