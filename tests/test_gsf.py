@@ -155,7 +155,7 @@ def test_bad_arguments_raise():
 
 def test_stateful_reducer_state_is_carried_and_inherited():
     from gmjax.filters.gsf import inherit
-    from gmjax.reduction._gmrcm import GMRCM, GMRCMState
+    from gmjax.reduction.gmrcm import GMRCM, GMRCMState
 
     # children of slot i are i*n .. i*n+n-1, matching the (K, L) -> K*L flattening of predict/update
     np.testing.assert_array_equal(inherit(GMRCMState(jnp.array([3, 0, 1])), 2).low_count, [3, 3, 0, 0, 1, 1])
