@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import pkgutil
 import sys
 import warnings
 from pathlib import Path
@@ -100,8 +101,9 @@ html_show_sourcelink = False
 
 # -- the API pages: one per public module, generated at build time ----------------------------------
 
-#: Public modules, in the order of the API index; packages are followed by their public submodules.
-API_MODULES = [
+#: Top-level modules in the order of the API index; packages list their public submodules after them
+#: (found by :func:`_discover`). A public top-level module missing here is appended at the end.
+API_ORDER = [
     "gmjax",
     "gmjax.mixture",
     "gmjax.gaussian",
@@ -109,35 +111,33 @@ API_MODULES = [
     "gmjax.quadrature",
     "gmjax.split",
     "gmjax.reduction",
-    "gmjax.reduction.relax",
     "gmjax.filters",
-    "gmjax.filters.base",
-    "gmjax.filters.local",
-    "gmjax.filters.kf",
-    "gmjax.filters.ekf",
-    "gmjax.filters.ukf",
-    "gmjax.filters.ckf",
-    "gmjax.filters.ghkf",
-    "gmjax.filters.sgkf",
-    "gmjax.filters.sckf",
-    "gmjax.filters.pf",
-    "gmjax.filters.imm",
-    "gmjax.filters.gsf",
-    "gmjax.filters.agsf",
-    "gmjax.filters.bank",
     "gmjax.models",
-    "gmjax.models.base",
-    "gmjax.models.noise",
-    "gmjax.models.seed000",
-    "gmjax.models.seed001",
-    "gmjax.models.seed003",
-    "gmjax.models.seed004",
-    "gmjax.models.pcrb_scenarios",
+    "gmjax.scenarios",
     "gmjax.pcrb",
     "gmjax.montecarlo",
     "gmjax.tune",
     "gmjax.studies",
 ]
+#: Not part of the library's API: the command-line entry point (documented by ``gmjax --help``).
+API_EXCLUDE = {"gmjax.cli"}
+
+
+def _discover() -> list[str]:
+    """Every public module of gmjax (no ``_``-prefixed part), packages followed by their submodules."""
+    found = [m.name for m in pkgutil.walk_packages(gmjax.__path__, "gmjax.")
+             if not any(p.startswith("_") for p in m.name.split(".")) and m.name not in API_EXCLUDE]
+    top = [m for m in API_ORDER if m == "gmjax" or m in found]
+    top += sorted(m for m in found if m.count(".") == 1 and m not in top)
+    ordered = []
+    for module_name in top:
+        ordered.append(module_name)
+        if module_name != "gmjax":
+            ordered += sorted(m for m in found if m.startswith(module_name + "."))
+    return ordered
+
+
+API_MODULES = _discover()
 
 
 def _public_home(module_name: str) -> str:
@@ -203,7 +203,8 @@ def write_api_pages(app) -> None:
         "API reference", "=============", "",
         "One page per public module. Every object is documented once, on the page of the module that",
         "defines it; the packages (``gmjax.filters``, ``gmjax.reduction``, ``gmjax.models``) re-export",
-        "their submodules' names, so ``gmjax.filters.build_gsf`` is ``gmjax.filters.gsf.build_gsf``.", "",
+        "their submodules' names, so ``gmjax.filters.build_gsf`` is ``gmjax.filters.gsf.build_gsf`` and",
+        "``gmjax.reduction.runnalls`` is the function ``gmjax.reduction.runnalls.runnalls``.", "",
         ".. toctree::", "   :maxdepth: 2", "",
     ] + [f"   {m}" for m in top]
     _write_if_changed(api / "index.rst", "\n".join(index) + "\n")
@@ -277,19 +278,23 @@ def _documented_names(dotted: str, obj, domain) -> list[str]:
 
 
 def _import_dotted(dotted: str):
-    """``(True, obj)`` for an importable module or attribute path, else ``(False, None)``."""
+    """``(True, obj)`` for a module or attribute path, else ``(False, None)``. Attributes are tried first,
+    as Python code sees them (``gmjax.reduction.runnalls`` is the function the package re-exports), then
+    the longest importable module prefix (``gmjax.reduction.eise._newton`` lives in the module)."""
     parts = dotted.split(".")
-    for i in range(len(parts), 0, -1):
-        try:
-            obj = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        try:
-            for attr in parts[i:]:
-                obj = getattr(obj, attr)
-        except AttributeError:
-            return False, None
-        return True, obj
+    for attributes_first in (True, False):
+        start = 1 if attributes_first else len(parts)
+        for i in range(start, 0, -1):
+            try:
+                obj = importlib.import_module(".".join(parts[:i]))
+            except ImportError:
+                continue
+            try:
+                for part in parts[i:]:
+                    obj = getattr(obj, part)
+            except AttributeError:
+                break
+            return True, obj
     return False, None
 
 
