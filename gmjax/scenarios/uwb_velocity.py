@@ -1,4 +1,5 @@
-"""Scenarios of seed 004 (Pishdad & Labeau, *A New Reduction Scheme for Gaussian Sum Filters*), §V."""
+"""Random-walk velocity models with GM measurement noise: the synthetic Models 1-3 and the UWB ranging noise
+of Pishdad & Labeau (active-cluster reduction; seed 004 §V, Tables I-II)."""
 
 from __future__ import annotations
 
@@ -254,7 +255,7 @@ def simulate_labeled(
 
     ``x_0 ~ N(0, prior_cov)``; at step ``k = 1..T`` draw ``i ~ w``, ``v = u_i + sqrt(sigma_i) n``,
     ``x_k = F x_{k-1} + v (dt, 1)`` (exactly on the noise line of eq 20, no jitter), then
-    ``j ~ p``, ``z_k = x_k[0] + b_j + sqrt(R_j) n'``. Same distribution as :func:`simulate` on
+    ``j ~ p``, ``z_k = x_k[0] + b_j + sqrt(R_j) n'``. Same distribution as :func:`~gmjax.models.simulate` on
     :func:`random_walk_velocity`, but also returns ``(i, j)`` for the Matched filter.
     """
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
