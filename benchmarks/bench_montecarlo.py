@@ -30,9 +30,9 @@ from reference import gsf_np, pcm_numpy  # noqa: E402
 
 from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
+from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 
 N_U = 20
 

@@ -37,9 +37,9 @@ from gmjax.filters import build_sckf, build_ukf  # noqa: E402
 from gmjax.filters.agsf import build_agsf, build_gsckf, build_gsukf  # noqa: E402
 from gmjax.filters.pf import build_pf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
+from gmjax.montecarlo import score_run, summarize  # noqa: E402
 from gmjax.scenarios.bearings_only import BEARINGS_SENSORS, bearings_only  # noqa: E402
 from gmjax.scenarios.gamma_system import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
-from gmjax.montecarlo import score_run, summarize  # noqa: E402
 
 FILTERS = ["UKF", "SCKF", "GSUKF", "GSCKF", "AGSSCKF", "PF"]
 

@@ -43,10 +43,10 @@ from reference import gsf_np, pcm_numpy  # noqa: E402
 from gmjax import tune as gt  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.scenarios.jump_system import JUMP_PRIOR, JUMP_PROCESS_NOISE, jump_system  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
 from gmjax.reduction.relax import soft_split_gate  # noqa: E402
+from gmjax.scenarios.jump_system import JUMP_PRIOR, JUMP_PROCESS_NOISE, jump_system  # noqa: E402
 
 TRAIN_SEED = 1
 HELDOUT_SEED = 20_261_122  # never used for training

@@ -12,17 +12,17 @@ Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`
 
 from importlib import metadata as _metadata
 
+from gmjax import filters as filters
 from gmjax import gaussian as gaussian
 from gmjax import metrics as metrics
 from gmjax import mixture as mixture
-from gmjax import quadrature as quadrature
-from gmjax import split as split
-from gmjax import reduction as reduction
-from gmjax import filters as filters
 from gmjax import models as models
 from gmjax import montecarlo as montecarlo
 from gmjax import pcrb as pcrb
+from gmjax import quadrature as quadrature
+from gmjax import reduction as reduction
 from gmjax import scenarios as scenarios
+from gmjax import split as split
 from gmjax import tune as tune
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo

@@ -19,7 +19,7 @@ import numpy as np
 from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
-from gmjax._types import Array, ArrayLike, Covs, Mask, Means, Matrix, PRNGKey, Vector, Weights
+from gmjax._types import Array, ArrayLike, Covs, Mask, Matrix, Means, PRNGKey, Vector, Weights
 
 _LOG_2PI = 1.8378770664093453
 
@@ -87,7 +87,7 @@ class GaussianMixture(NamedTuple):
         *,
         normalize: bool = True,
         dtype=None,
-    ) -> "GaussianMixture":
+    ) -> GaussianMixture:
         """Validate concrete arrays and build a padded mixture (the API boundary).
 
         Args:
@@ -149,7 +149,7 @@ class GaussianMixture(NamedTuple):
         means: ArrayLike,
         covs: ArrayLike,
         mask: ArrayLike | None = None,
-    ) -> "GaussianMixture":
+    ) -> GaussianMixture:
         """Build a mixture inside traced code (no validation); padded slots are sanitised."""
         weights = jnp.asarray(weights)
         mask = jnp.ones(weights.shape, bool) if mask is None else jnp.asarray(mask, bool)

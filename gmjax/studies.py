@@ -19,11 +19,11 @@ from gmjax.filters import build_pf
 from gmjax.filters.base import Filter
 from gmjax.filters.gsf import build_gsf
 from gmjax.models import Scenario
+from gmjax.montecarlo import MonteCarloResult, monte_carlo
 from gmjax.scenarios.bearings_only import bearings_only
 from gmjax.scenarios.gamma_system import gamma_system
 from gmjax.scenarios.glint_range_bearing import range_bearing
 from gmjax.scenarios.jump_system import jump_system
-from gmjax.montecarlo import MonteCarloResult, monte_carlo
 
 __all__ = ["Study", "STUDIES", "run_study", "format_table", "plot_study"]
 
@@ -185,8 +185,8 @@ def _seed001(name: str) -> Study:
 def _seed003(motion: str) -> Study:
     """Seed 003 §4.2: IMM (CS + CT) whose model filters are Gaussian sum filters, four reducers."""
     from gmjax.filters.imm import build_imm_gsf
-    from gmjax.scenarios import manoeuvring_target
     from gmjax.reduction import GMRC, GMRCM, PruneTop, Runnalls
+    from gmjax.scenarios import manoeuvring_target
 
     K = 8  # components kept per model filter (the paper's preset number is not given)
 

@@ -14,8 +14,8 @@ import pytest
 from gmjax import montecarlo
 from gmjax.filters import build_ekf
 from gmjax.filters.gsf import build_gsf
-from gmjax.scenarios.jump_system import jump_system
 from gmjax.reduction import PruneTop
+from gmjax.scenarios.jump_system import jump_system
 
 
 def small_study(n_steps=10):

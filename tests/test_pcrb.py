@@ -14,8 +14,6 @@ from scipy.stats import norm
 
 from gmjax import mixture
 from gmjax.mixture import GaussianMixture
-from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup, ungm_transition
-from gmjax.scenarios.linear_system import linear_system
 from gmjax.pcrb import (
     GMMPCRBConfig,
     PCRBModel,
@@ -29,6 +27,8 @@ from gmjax.pcrb import (
     pcrb_step,
 )
 from gmjax.quadrature import gauss_hermite, smolyak
+from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup, ungm_transition
+from gmjax.scenarios.linear_system import linear_system
 from gmjax.split import gauss_hermite_library, split_repeated
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))

@@ -90,8 +90,7 @@ from gmjax.filters.gsf import gs_predict, gs_update, inherit
 from gmjax.filters.local import local_filter_for
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import ModelParams, StateSpaceModel
-from gmjax.reduction import _util
-from gmjax.reduction import ReductionInfo, make_info
+from gmjax.reduction import ReductionInfo, _util, make_info
 from gmjax.split import split_gated
 
 __all__ = [

@@ -99,9 +99,9 @@ from gmjax.filters._core import (
     repair_cov,
     safe_chol,
 )
+from gmjax.filters._linearized import affine_parts, linearized_filter
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs, run
 from gmjax.filters.gsf import gs_predict, gs_update
-from gmjax.filters._linearized import affine_parts, linearized_filter
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import ModelParams, StateSpaceModel
 

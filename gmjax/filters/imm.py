@@ -40,9 +40,9 @@ from jax.scipy.special import logsumexp
 from gmjax import gaussian
 from gmjax import mixture as gmm
 from gmjax._types import Array, PRNGKey
-from gmjax.filters.local import LOCAL_FILTERS
 from gmjax.filters._core import LocalFilter, check_model, gaussian_moments, is_missing
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
+from gmjax.filters.local import LOCAL_FILTERS
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import ModelParams, StateSpaceModel
 

@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax.reduction._util import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
+from gmjax.reduction._util import ise
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 from gmjax.reduction.merge import merge_labels
 

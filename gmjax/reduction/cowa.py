@@ -14,8 +14,8 @@ from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
 from gmjax.reduction._util import ise
-from gmjax.reduction.west import west_distance
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.west import west_distance
 
 __all__ = ["cowa", "optimal_weights", "COWA"]
 

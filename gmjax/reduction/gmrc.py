@@ -12,8 +12,8 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
-from gmjax.reduction.runnalls import _runnalls
 from gmjax.reduction.merge import merge_labels
+from gmjax.reduction.runnalls import _runnalls
 
 __all__ = ["gmrc", "GMRC", "kl_upper_bound"]
 

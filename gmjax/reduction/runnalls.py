@@ -15,6 +15,7 @@ import jax.numpy as jnp
 
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction import _util
 from gmjax.reduction._greedy import (
     clean_upper,
     finish,
@@ -24,7 +25,6 @@ from gmjax.reduction._greedy import (
     sequential,
     upper_argmin,
 )
-from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, moments
-from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
 from gmjax.reduction import _util
+from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["salmond", "salmond_cost", "Salmond"]

@@ -11,8 +11,8 @@ import jax.numpy as jnp
 
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
-from gmjax.reduction._greedy import finish, greedy_steps, init_state
 from gmjax.reduction import _util
+from gmjax.reduction._greedy import finish, greedy_steps, init_state
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["west", "west_distance", "West"]

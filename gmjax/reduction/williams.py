@@ -12,9 +12,9 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
+from gmjax.reduction._greedy import merge_broadcast
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
 from gmjax.reduction._util import ise
-from gmjax.reduction._greedy import merge_broadcast
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 
 __all__ = ["williams", "Williams"]

@@ -7,7 +7,6 @@ Returns a :class:`gmjax.pcrb.PCRBModel` (additive Gaussian noises, the paper's t
 
 from __future__ import annotations
 
-
 import jax.numpy as jnp
 
 from gmjax._types import ArrayLike
