@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -88,7 +88,7 @@ def run(*, draws: int = 1000, seed: int = 0, out: Path = Path("gmjax_out"), plot
     for case_key, case in zip(jax.random.split(key, len(CASES)), CASES):
         gms = draw_mixtures(case, case_key, draws)
         first_draws[case.name] = jax.tree_util.tree_map(lambda a: a[0], gms)
-        rows = {}
+        rows: dict[str, dict[str, Any]] = {}
         print(f"\ncase {case.name} ({case.n_components} components, 1-D)")
         print(f"{'approximation':38s} {'ISE mean ± std':>24s} {'NISE mean ± std':>24s} {'count':>7s} {'time s':>8s}")
         for name, fn in approximations(case).items():

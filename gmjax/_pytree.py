@@ -8,7 +8,7 @@ the tree structure, so changing them recompiles), thresholds are ordinary fields
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import jax
 
@@ -41,7 +41,7 @@ def pytree_dataclass(cls: type[T]) -> type[T]:
     (``register_dataclass`` compares only the static values).
     """
     cls = dataclasses.dataclass(frozen=True)(cls)
-    fields = dataclasses.fields(cls)
+    fields = dataclasses.fields(cast(Any, cls))  # a dataclass from the line above
     data_names = tuple(f.name for f in fields if not f.metadata.get("static", False))
     meta_names = tuple(f.name for f in fields if f.metadata.get("static", False))
 

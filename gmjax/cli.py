@@ -35,6 +35,7 @@ def _run_bench(name: str, rest: Sequence[str]) -> int:
         return 2
     path = _BENCH_DIR / f"bench_{name}.py"
     spec = importlib.util.spec_from_file_location(f"gmjax_bench_{name}", path)
+    assert spec is not None and spec.loader is not None  # the file exists: checked above
     module = importlib.util.module_from_spec(spec)
     sys.path.insert(0, str(_BENCH_DIR))
     spec.loader.exec_module(module)

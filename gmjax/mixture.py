@@ -19,7 +19,7 @@ import numpy as np
 from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
-from gmjax._types import Array, ArrayLike, Covs, Mask, Matrix, Means, PRNGKey, Vector, Weights
+from gmjax._types import Array, ArrayLike, Covs, DTypeLike, Mask, Matrix, Means, PRNGKey, Vector, Weights
 
 _LOG_2PI = 1.8378770664093453
 
@@ -86,7 +86,7 @@ class GaussianMixture(NamedTuple):
         capacity: int | None = None,
         *,
         normalize: bool = True,
-        dtype=None,
+        dtype: DTypeLike | None = None,
     ) -> GaussianMixture:
         """Validate concrete arrays and build a padded mixture (the API boundary).
 
@@ -343,8 +343,8 @@ def sample(gm: GaussianMixture, key: PRNGKey, n: int) -> Array:
 
 def marginal(gm: GaussianMixture, dims: Sequence[int]) -> GaussianMixture:
     """Marginal mixture over the state dimensions ``dims`` (static)."""
-    dims = jnp.asarray(dims)
-    return GaussianMixture(gm.weights, gm.means[:, dims], gm.covs[:, dims][:, :, dims], gm.mask)
+    idx = jnp.asarray(dims)
+    return GaussianMixture(gm.weights, gm.means[:, idx], gm.covs[:, idx][:, :, idx], gm.mask)
 
 
 def affine(gm: GaussianMixture, A: ArrayLike, b: ArrayLike | None = None) -> GaussianMixture:

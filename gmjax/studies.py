@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -154,7 +154,7 @@ _SEED001_NOTES = (
 )
 
 
-_SEED001_TABLES = {
+_SEED001_TABLES: dict[str, tuple[str, str, Callable[..., Scenario], tuple[float, ...], str]] = {
     # study name -> (table, title, scenario factory, paper ARMSE per filter, extra note)
     "gamma": ("seed001-table2", "seed 001 Table 2: 1-D system with Gamma process noise (eqs 44-47)",
               gamma_system, (33.25, 30.12, 23.22, 18.86, 18.05, 16.32),
@@ -276,7 +276,7 @@ def format_table(study: Study, results: dict[str, MonteCarloResult]) -> str:
 
 def results_json(study: Study, results: dict[str, MonteCarloResult]) -> dict:
     """JSON-ready summary (per-step curves included)."""
-    out = {"study": study.name, "table": study.table, "title": study.title, "notes": study.notes,
+    out: dict[str, Any] = {"study": study.name, "table": study.table, "title": study.title, "notes": study.notes,
            "paper": study.paper, "paper_runs": study.paper_runs, "filters": {}}
     for name, r in results.items():
         out["filters"][name] = {

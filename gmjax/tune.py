@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import Any, Callable, Mapping, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -154,7 +154,7 @@ def weighted_loss(*terms: tuple[float, Callable[[TuneScores], Array]]) -> Callab
             raise ValueError(f"terms: expected (weight, loss) pairs, got {t!r}")
 
     def loss(scores: TuneScores) -> Array:
-        return sum(float(c) * f(scores) for c, f in terms)
+        return cast(Array, sum(float(c) * f(scores) for c, f in terms))
 
     return loss
 
@@ -178,6 +178,7 @@ class Bounds(NamedTuple):
     def to_constrained(self, u: Array) -> Array:
         lo, hi = self.low, self.high
         if self.log:
+            assert lo is not None and hi is not None  # a log bound has both ends (checked on construction)
             a, b = math.log(lo), math.log(hi)
             return jnp.exp(a + (b - a) * jax.nn.sigmoid(u))
         if lo is not None and hi is not None:
@@ -191,6 +192,7 @@ class Bounds(NamedTuple):
     def to_unconstrained(self, x: float) -> float:
         lo, hi = self.low, self.high
         if self.log:
+            assert lo is not None and hi is not None
             p = (math.log(x) - math.log(lo)) / (math.log(hi) - math.log(lo))
             return math.log(p) - math.log1p(-p)
         if lo is not None and hi is not None:
@@ -369,8 +371,8 @@ def tune(
     compile_s = time.perf_counter() - t0
 
     losses, oks, flags, times = [], [], [], []
-    p_hist = {n: [] for n in names}
-    g_hist = {n: [] for n in names}
+    p_hist: dict[str, list[float]] = {n: [] for n in names}
+    g_hist: dict[str, list[float]] = {n: [] for n in names}
     for s in range(steps):
         k = jax.random.fold_in(key, s) if resample else key0
         theta = {n: float(v) for n, v in constrained(u).items()}
@@ -398,7 +400,7 @@ def tune(
     return TuneResult(final, history, compile_s)
 
 
-def plot_history(history: TuneHistory, path: str | None = None, *, title: str | None = None):
+def plot_history(history: TuneHistory, path: str | None = None, *, title: str | None = None) -> Any:
     """Plot the loss and every parameter against the step (matplotlib, imported lazily).
 
     Args:

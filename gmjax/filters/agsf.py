@@ -83,7 +83,7 @@ import numpy as np
 
 from gmjax import mixture as gmm
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax._types import Array, PRNGKey
+from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.filters._core import LocalFilter, check_model, is_missing, safe_chol
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
 from gmjax.filters.gsf import gs_predict, gs_update, inherit
@@ -206,7 +206,7 @@ def degree_of_nonlinearity(
     h: Callable[[Array, Array], Array],
     mean: Array,
     cov: Array,
-    t: Array = 0,
+    t: ArrayLike = 0,
     *,
     is_chol: bool = False,
 ) -> Array:

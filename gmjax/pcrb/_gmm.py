@@ -35,7 +35,7 @@ from gmjax.mixture import GaussianMixture, from_gaussian, pad, sanitize
 from gmjax.pcrb._model import PCRBModel, check_model, prior_information
 from gmjax.pcrb._recursion import PCRBResult, bounds_from_information, inv_pd, pcrb_step
 from gmjax.quadrature import SigmaPoints, unscented
-from gmjax.reduction import kmeans
+from gmjax.reduction.kmeans import kmeans
 from gmjax.split import SplitLibrary, split_repeated
 
 __all__ = [

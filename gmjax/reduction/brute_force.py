@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
 from gmjax.reduction._util import ise
@@ -116,5 +117,5 @@ class BruteForce(Stateless):
     num_out: int = static_field(3)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return brute_force(gm, self.num_out, capacity=self.capacity, key=key)

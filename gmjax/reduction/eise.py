@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian
-from gmjax._types import Array, ArrayLike
+from gmjax._types import Array, ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.clustering import (
@@ -74,7 +74,7 @@ def _check_options(method: str, regularizer: str) -> None:
         raise ValueError(f"regularizer: expected one of {_REGULARIZERS}, got {regularizer!r}")
 
 
-def onehot_membership(labels: Array, num_clusters: int, dtype=None) -> Array:
+def onehot_membership(labels: Array, num_clusters: int, dtype: DTypeLike | None = None) -> Array:
     """``(K, C)`` float membership ``A[m, c] = [labels[m] == c]`` (rows of ``-1`` labels are 0)."""
     dtype = jnp.float32 if dtype is None else dtype
     return (labels[:, None] == jnp.arange(num_clusters)[None, :]).astype(dtype)

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
@@ -111,5 +112,5 @@ class GMRC(Stateless):
     max_iter: int = static_field(50)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return gmrc(gm, self.num_out, max_iter=self.max_iter, capacity=self.capacity, key=key)

@@ -236,6 +236,6 @@ class GMRCM:
             large_factor=self.large_factor, dims=self.dims, capacity=self.capacity, key=key,
         )
 
-    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
+    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         out, _, info = self.reduce(gm, None, key=key)
         return out, info

@@ -391,7 +391,7 @@ class PCM(Stateless):
     gate_temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
+    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return pcm(
             gm, rho=self.rho, max_components=self.max_components, alpha=self.alpha, lam=self.lam,
             lambda_range=self.lambda_range, grid_size=self.grid_size,

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._greedy import merge_broadcast
@@ -152,7 +153,7 @@ class Williams(Stateless):
     allow_prune: bool = static_field(True)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return williams(
             gm, self.num_out, self.threshold, allow_prune=self.allow_prune,
             capacity=self.capacity, key=key,
