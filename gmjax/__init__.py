@@ -8,6 +8,11 @@ Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`
 :mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`scenarios` (the papers' systems),
 :mod:`montecarlo`, :mod:`pcrb`,
 :mod:`tune` (differentiable threshold tuning), :mod:`studies`.
+
+Docstrings cite the five papers gmjax implements by equation number under the labels "seed 000" to
+"seed 004": seed 000 is Xu et al., PCM (IEEE Access); seed 001 Liu et al. 2014, AGSSCKF; seed 002
+Zhang et al. 2021, PCRBs from Gaussian mixtures; seed 003 Xu et al. 2019, GMRCM; seed 004 Pishdad &
+Labeau 2014, the active-cluster reduction. Full references: ``docs/references.md``.
 """
 
 from importlib import metadata as _metadata

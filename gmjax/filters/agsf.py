@@ -1,4 +1,4 @@
-"""Adaptive Gaussian-sum square-root cubature Kalman filter with split-merge (seed 001, AGSSCKF).
+"""Adaptive Gaussian-sum square-root cubature Kalman filter with split-merge (AGSSCKF; Liu et al. 2014 = seed 001).
 
 One time step of Table 1 is split over the two halves of a :class:`~gmjax.filters.Filter`
 (``params`` is an :class:`AGSFParams`; ``inputs.t`` is the time passed to ``f`` and ``h``):

@@ -1,4 +1,4 @@
-"""Linear Gaussian sum filters (banks of Kalman filters) with the reductions of seed 004.
+"""Linear Gaussian sum filters (banks of Kalman filters) with the reductions of seed 004 (Pishdad & Labeau 2014).
 
 Pishdad & Labeau, *A New Reduction Scheme for Gaussian Sum Filters*. The model is linear (affine)
 ``x_k = F x_{k-1} + v_k``, ``z_k = H x_k + w_k`` (eqs 1–2) with GM process noise

@@ -1,4 +1,4 @@
-"""GMM-quadrature PCRB (seed 002 §IV): Algorithms 1 and 2 with the nonlinearity switch.
+"""GMM-quadrature PCRB (Zhang et al. 2021 = seed 002, §IV): Algorithms 1 and 2 with the nonlinearity switch.
 
 The state density is a fixed-capacity Gaussian mixture of ``K`` components. Each step
 

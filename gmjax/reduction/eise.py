@@ -1,6 +1,6 @@
 """Extended ISE (EISE) of a cluster-merge and the search for the confidence multiplier ``λ``.
 
-The EISE of a clustering (seed 000 eqs 29–35; seed 003 eqs 10–15) is the sum over clusters of the
+The EISE of a clustering (Xu et al., PCM = seed 000 eqs 29–35; Xu et al. 2019 = seed 003 eqs 10–15) is the sum over clusters of the
 integrated squared error between the cluster's sub-mixture ``f_c = Σ_{m∈c} w_m N(u_m, P_m)`` and its
 merged Gaussian ``q_c = W_c N(ū_c, P̄_c)``, plus a penalty on the number of clusters ``N'``:
 

@@ -1,4 +1,4 @@
-"""Cluster-merge reduction, GMRCM (seed 003, Algorithm 1 steps 4–8).
+"""Cluster-merge reduction, GMRCM (Xu et al. 2019 = seed 003, Algorithm 1 steps 4–8).
 
 Per call (one filter step):
 

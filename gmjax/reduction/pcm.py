@@ -1,4 +1,4 @@
-"""Prune-cluster-merge mixture reduction, PCM-GMR (seed 000, Table 1 steps 2–7).
+"""Prune-cluster-merge mixture reduction, PCM-GMR (Xu et al., PCM = seed 000, Table 1 steps 2–7).
 
 1. *Weight-censored pruning* by the j-th order statistic (eqs 19–22, ``ρ = 0.9544``, cap ``N_u``)
    with the survivors' weights reset by eq 41 (:func:`gmjax.reduction.prune.prune_censored`).
