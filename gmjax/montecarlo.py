@@ -794,7 +794,7 @@ def monte_carlo(
     keep_runs: int | None = None,
     keep_trajectories: bool = False,
     checkpoint: str | os.PathLike | None = None,
-    progress: bool = True,
+    progress: bool | str = True,
 ) -> MonteCarloResult:
     """Run ``n_runs`` independent simulations of ``scenario`` through ``filter`` and score them.
 
@@ -815,7 +815,8 @@ def monte_carlo(
             (default 0, or all runs with ``keep_trajectories``).
         keep_trajectories: also keep the kept runs' ``(k, T, d)`` estimates and truths.
         checkpoint: path of an ``.npz`` checkpoint to resume from and update after every chunk.
-        progress: compilation notice and a progress bar (runs/s, ETA) on stderr.
+        progress: compilation notice and a progress bar (runs/s, ETA) on stderr; a string labels the
+            bar (default label: the scenario's name); ``False``: quiet.
 
     Returns:
         A :class:`MonteCarloResult`.
@@ -863,8 +864,8 @@ def monte_carlo(
         kept = [] if kept_prev is None else [kept_prev]
     resumed = next_run - runs.start
 
-    bar = Progress(len(runs), desc=f"{scenario.name or 'study'}", unit="runs", enabled=progress,
-                   initial=resumed)
+    label = progress if isinstance(progress, str) else (scenario.name or "study")
+    bar = Progress(len(runs), desc=label, unit="runs", enabled=bool(progress), initial=resumed)
     mesh = jax.sharding.Mesh(np.asarray(devices), ("runs",))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     program = _chunk_program(filter, scenario, params, chunk, keep_runs > 0, keep_trajectories, mesh)
