@@ -31,11 +31,11 @@ def one(n: int, chunk_size: int | None) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     from gmjax.filters.gsf import build_gsf
-    from gmjax.models import seed000
+    from gmjax.scenarios.jump_system import jump_system
     from gmjax.montecarlo import monte_carlo
     from gmjax.reduction import PruneTop
 
-    sc = seed000.jump_system()
+    sc = jump_system()
     filt = build_gsf(sc.model, "ekf", PruneTop(num_out=N_U), capacity=N_U, track_ise=False)
     t0 = time.perf_counter()
     r = monte_carlo(filt, sc, n, jax.random.key(0), chunk_size=chunk_size, progress=False)

@@ -18,7 +18,7 @@ import pytest
 from gmjax import montecarlo
 from gmjax.filters import build_ekf
 from gmjax.filters.gsf import build_gsf
-from gmjax.models import seed000
+from gmjax.scenarios.jump_system import jump_system
 from gmjax.reduction import PruneTop
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,16 +30,16 @@ SMALL = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     from gmjax import montecarlo
     from gmjax.filters.gsf import build_gsf
-    from gmjax.models import seed000
+    from gmjax.scenarios.jump_system import jump_system
     from gmjax.reduction import PruneTop
-    sc = seed000.jump_system()._replace(n_steps=10)
+    sc = jump_system()._replace(n_steps=10)
     filt = build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)
     """
 )
 
 
 def small_study(n_steps=10):
-    sc = seed000.jump_system()._replace(n_steps=n_steps)
+    sc = jump_system()._replace(n_steps=n_steps)
     return sc, build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)
 
 
@@ -234,7 +234,7 @@ def test_flags_reduce_every_flag_field():
 
 def test_armse_stderr_matches_spread_of_independent_studies():
     # the delta-method standard error should describe the spread of ARMSE over independent studies
-    sc = seed000.jump_system()._replace(n_steps=10)
+    sc = jump_system()._replace(n_steps=10)
     parts = [montecarlo.monte_carlo(build_ekf(sc.model), sc, 320, jax.random.key(100), runs=range(g * 40, (g + 1) * 40),
                                     chunk_size=40, progress=False) for g in range(8)]
     spread = np.std([p.armse for p in parts], ddof=1)
@@ -245,7 +245,7 @@ def test_armse_stderr_matches_spread_of_independent_studies():
 def test_single_gaussian_and_particle_filters_run_through_the_same_runner():
     from gmjax.filters import build_pf
 
-    sc = seed000.jump_system()._replace(n_steps=8)
+    sc = jump_system()._replace(n_steps=8)
     for filt in (build_ekf(sc.model), build_pf(sc.model, 50)):
         r = montecarlo.monte_carlo(filt, sc, 3, jax.random.key(2), progress=False)
         assert r.rmse.shape == (8,)
@@ -283,7 +283,7 @@ def test_bad_arguments_raise():
             montecarlo.monte_carlo(filt, sc, args.pop("n_runs"), key, progress=False, **args)
     with pytest.raises(ValueError, match="n_steps"):
         montecarlo.monte_carlo(filt, sc._replace(n_steps=0), 2, key, progress=False)
-    sc32 = seed000.jump_system(n_steps=5, dtype=jnp.float32)
+    sc32 = jump_system(n_steps=5, dtype=jnp.float32)
     with pytest.raises(ValueError, match="filter: its params hold.*float64"):
         montecarlo.monte_carlo(filt, sc32, 2, key, progress=False)
     with pytest.raises(ValueError, match="scenario: 'jump' .float32. cannot be simulated"):
