@@ -814,7 +814,8 @@ def monte_carlo(
         keep_runs: keep the per-run :class:`RunScores` of the first ``keep_runs`` runs of ``runs``
             (default 0, or all runs with ``keep_trajectories``).
         keep_trajectories: also keep the kept runs' ``(k, T, d)`` estimates and truths.
-        checkpoint: path of an ``.npz`` checkpoint to resume from and update after every chunk.
+        checkpoint: path of an ``.npz`` checkpoint to resume from and update after every chunk (under
+            ``jax.distributed``, process 0 writes it: put it where every process can read it).
         progress: compilation notice and a progress bar (runs/s, ETA) on stderr; a string labels the
             bar (default label: the scenario's name); ``False``: quiet.
 

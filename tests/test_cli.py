@@ -114,6 +114,7 @@ def restore_x64():
     jax.config.update("jax_enable_x64", before)
 
 
+@pytest.mark.slow  # a second compile of the static study, in float32
 def test_float32_flag_runs_in_float32_and_says_so(tmp_path, capsys, restore_x64):
     assert cli.main(["static", "--draws", "4", "--out", str(tmp_path), "--no-plot", "--float32"]) == 0
     assert "float32" in capsys.readouterr().out.splitlines()[0]

@@ -233,13 +233,20 @@ def test_flags_reduce_every_flag_field():
 
 
 def test_armse_stderr_matches_spread_of_independent_studies():
-    # the delta-method standard error should describe the spread of ARMSE over independent studies
+    # the delta-method standard error should describe the spread of ARMSE over independent studies:
+    # one compiled study of 8 x 40 runs, summarised as 8 separate studies of 40 runs
     sc = jump_system()._replace(n_steps=10)
-    parts = [montecarlo.monte_carlo(build_ekf(sc.model), sc, 320, jax.random.key(100), runs=range(g * 40, (g + 1) * 40),
-                                    chunk_size=40, progress=False) for g in range(8)]
+    big = montecarlo.monte_carlo(build_ekf(sc.model), sc, 320, jax.random.key(100), chunk_size=64, keep_runs=320,
+                                 progress=False)
+    parts = [montecarlo.summarize(jax.tree_util.tree_map(lambda a: a[g * 40:(g + 1) * 40], big.scores))
+             for g in range(8)]
     spread = np.std([p.armse for p in parts], ddof=1)
+    se = np.mean([p.armse_stderr for p in parts])
     # the sample std of 8 values is itself uncertain by ~25%: accept a factor-2 band
-    assert 0.5 * np.mean([p.armse_stderr for p in parts]) < spread < 2.0 * np.mean([p.armse_stderr for p in parts])
+    assert 0.5 * se < spread < 2.0 * se
+    # the parts merge into the whole study
+    assert montecarlo.merge([p._replace(runs=(40 * g, 40 * (g + 1))) for g, p in enumerate(parts)]).armse == \
+        pytest.approx(big.armse, rel=1e-13)
 
 
 def test_single_gaussian_and_particle_filters_run_through_the_same_runner():
