@@ -136,7 +136,8 @@ def pcm_section(args) -> dict:
     for name, red in configs.items():
         print(f"[PCM-GSF] held-out: {name}, {args.eval_runs} runs")
         results[name] = monte_carlo(build_gsf(sc.model, "ekf", red, capacity=N_U, track_ise=False), sc,
-                                    args.eval_runs, key, keep_trajectories=name.startswith("tuned"), progress=False)
+                                    args.eval_runs, key, keep_runs=args.eval_runs,
+                                    keep_trajectories=name.startswith("tuned"), progress=False)
     rows = compare(results, list(configs)[0], list(configs)[1])
 
     # NumPy reference: the tuned hard PCM-GSF on the first held-out runs
@@ -209,7 +210,8 @@ def agsf_section(args) -> dict | None:
     results = {}
     for name, cfg in configs.items():
         print(f"[AGSSCKF] held-out: {name}, {args.eval_runs} runs")
-        results[name] = monte_carlo(build_agsf(sc.model, cfg), sc, args.eval_runs, key, progress=False)
+        results[name] = monte_carlo(build_agsf(sc.model, cfg), sc, args.eval_runs, key, keep_runs=args.eval_runs,
+                                    progress=False)
     rows = compare(results, list(configs)[0], list(configs)[1])
     h = res.history
     return {

@@ -318,7 +318,7 @@ def test_bad_inputs_raise():
 def test_pcrb_mc_progress_bar_goes_to_stderr(capsys):
     pcrb_mc(ungm(), 2, 100, key=jax.random.PRNGKey(0), chunk_size=50, progress=True)
     err = capsys.readouterr().err
-    assert "chunk 2/2" in err
+    assert "pcrb_mc" in err and "2/2 chunks" in err  # the one progress bar (gmjax._progress)
 
 
 @pytest.mark.slow
