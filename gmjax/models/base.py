@@ -7,7 +7,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax.numpy as jnp
 
-from gmjax._types import Array
+from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
 
 __all__ = [
@@ -196,8 +196,8 @@ class Scenario(NamedTuple):
     model: StateSpaceModel
     n_steps: int
     sample_initial: Callable[[Array], Array]
-    sample_process_noise: Callable[[Array, Array], Array]
-    sample_measurement_noise: Callable[[Array, Array], Array]
+    sample_process_noise: Callable[[Array, ArrayLike], Array]
+    sample_measurement_noise: Callable[[Array, ArrayLike], Array]
     truth_f: Callable[[Array, Array], Array] | None = None
     truth_h: Callable[[Array, Array], Array] | None = None
     position_dims: tuple[int, ...] | None = None

@@ -9,7 +9,7 @@ converts (and checks) a :class:`StateSpaceModel`.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +19,9 @@ from gmjax import mixture as gmm
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
 from gmjax.pcrb._noise import noise_information
+
+if TYPE_CHECKING:  # gmjax.models imports nothing from pcrb, but keep the import graph one-way
+    from gmjax.models.base import StateSpaceModel
 
 __all__ = ["PCRBModel", "from_state_space_model", "prior_information", "as_pcrb_model"]
 
@@ -159,7 +162,7 @@ def prior_information(prior: GaussianMixture, J0: ArrayLike | None = None) -> Ar
     return jnp.linalg.inv(P0)
 
 
-def from_state_space_model(ssm) -> PCRBModel:
+def from_state_space_model(ssm: StateSpaceModel) -> PCRBModel:
     """Convert a :class:`gmjax.models.StateSpaceModel` (Gaussian or Gaussian-mixture noises).
 
     ``StateSpaceModel`` writes ``x_k = f(x_{k-1}, k) + v_k``: its ``f`` is called with the index of

@@ -5,14 +5,11 @@ Validation lives in :mod:`gmjax._validate`, the small-matrix algebra in :mod:`gm
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 
 from gmjax import mixture
 from gmjax.mixture import GaussianMixture
-
-
 
 # ----------------------------------------------------------------------------- finalisation
 
