@@ -25,9 +25,11 @@ from gmjax import mixture as gmm
 from gmjax._types import Array, Matrix, PRNGKey, Vector
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
 from gmjax.mixture import GaussianMixture
-from gmjax.models.base import ModelParams, StateSpaceModel
+from gmjax.models.base import ModelParams, StateSpaceModel, call_convention, wrap_angles
 
 __all__ = [
+    "circular_mean",
+    "wrap_angles",
     "GaussianState",
     "SqrtState",
     "UpdateInfo",
@@ -79,7 +81,8 @@ class LocalFilter(NamedTuple):
     Attributes:
         init: ``(mean (d,), cov (d, d)) -> state``.
         predict: ``(state, t, noise_mean (d,), noise_cov (d, d)) -> state`` for
-            ``x' = f(x, t) + v``, ``v ~ N(noise_mean, noise_cov)``.
+            ``x' = f(x, t) + v``, ``v ~ N(noise_mean, noise_cov)``; ``t`` is the step's
+            :class:`~gmjax.filters.StepInputs` (model-level filters pass it whole) or a bare time.
         update: ``(state, z (m,), t, noise_mean (m,), noise_cov (m, m)) -> (state, UpdateInfo)``
             for ``z = h(x, t) + w``, ``w ~ N(noise_mean, noise_cov)``.
         moments: ``state -> (mean (d,), cov (d, d))``.
@@ -151,6 +154,19 @@ def finish_info(missing, loglik, innovation, S, repaired) -> UpdateInfo:
     )
 
 
+def circular_mean(Z: Array, wm: Array, angle_dims: tuple[int, ...]) -> Array:
+    """``sum_i wm_i Z_i`` ``(m,)``, with the ``angle_dims`` averaged on the circle.
+
+    Angles are averaged as ``ref + sum_i wm_i wrap(Z_i - ref)`` around the first point ``ref``
+    (exact for any weights, negative unscented weights included, while the points span less than
+    ``pi`` around ``ref``), then wrapped into ``[-pi, pi)``.
+    """
+    if not angle_dims:
+        return wm @ Z
+    ref = Z[0]
+    return wrap_angles(ref + wm @ wrap_angles(Z - ref, angle_dims), angle_dims)
+
+
 def safe_z(z: Array, z_hat: Array) -> tuple[Array, Array]:
     """``(missing, z with NaNs replaced by z_hat)`` so nothing NaN reaches the arithmetic."""
     z = jnp.asarray(z)
@@ -177,6 +193,8 @@ def check_model(model: StateSpaceModel) -> tuple[int, int]:
     """
     if not isinstance(model, StateSpaceModel):
         raise ValueError(f"model: expected a StateSpaceModel, got {type(model).__name__}")
+    for name in ("f", "h"):
+        call_convention(getattr(model, name), model.call, name)  # resolves once; raises on a bad `call`
     for name in ("process_noise", "measurement_noise", "prior"):
         gm = getattr(model, name)
         if not isinstance(gm, GaussianMixture):
@@ -194,15 +212,20 @@ def check_model(model: StateSpaceModel) -> tuple[int, int]:
             f"dimension {d} of model.prior"
         )
     x = jax.ShapeDtypeStruct((d,), model.prior.means.dtype)
-    t = jax.ShapeDtypeStruct((), jnp.int32)
-    fo = jax.eval_shape(model.f, x, t)
+    inputs = StepInputs(t=jax.ShapeDtypeStruct((), jnp.int32))
+    f, h, _, _ = model.step_fns()
+    fo = jax.eval_shape(f, x, inputs)
     if getattr(fo, "shape", None) != (d,):
         raise ValueError(f"model.f: must map a ({d},) state to ({d},), returned {fo.shape}")
-    ho = jax.eval_shape(model.h, x, t)
+    ho = jax.eval_shape(h, x, inputs)
     if getattr(ho, "shape", None) != (m,):
         raise ValueError(
             f"model.h: returns shape {ho.shape}, but model.measurement_noise has dimension {m}"
         )
+    angles = tuple(model.angle_dims)
+    if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < m for i in angles) \
+            or len(set(angles)) != len(angles):
+        raise ValueError(f"model.angle_dims: expected distinct measurement indices in [0, {m}), got {angles}")
     return d, m
 
 
@@ -241,11 +264,12 @@ def from_local(model: StateSpaceModel, local: LocalFilter) -> Filter:
 
     def predict(params: ModelParams, state, inputs: StepInputs, *, key: PRNGKey | None = None):
         del key
-        return local.predict(state, inputs.t, *gaussian_moments(params.process_noise))
+        noise = model.noise_at(params.process_noise, inputs)
+        return local.predict(state, inputs, *gaussian_moments(noise))
 
     def update(params: ModelParams, state, z, inputs: StepInputs, *, key: PRNGKey | None = None):
         del key
-        new, info = local.update(state, z, inputs.t, *gaussian_moments(params.measurement_noise))
+        new, info = local.update(state, z, inputs, *gaussian_moments(params.measurement_noise))
         return new, local_step_info(local, new, info)
 
     return Filter(init, predict, update, model.params)

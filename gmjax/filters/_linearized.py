@@ -28,6 +28,7 @@ from gmjax.filters._core import (
     safe_chol,
     safe_z,
     select_state,
+    wrap_angles,
 )
 
 __all__ = ["Linearize", "linearized_filter", "as_time_fn", "with_jacobian", "affine_parts"]
@@ -36,8 +37,12 @@ __all__ = ["Linearize", "linearized_filter", "as_time_fn", "with_jacobian", "aff
 Linearize = Callable[[jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
 
 
-def linearized_filter(f_lin: Linearize, h_lin: Linearize) -> LocalFilter:
-    """A local filter from ``f_lin(m, t) -> (f(m, t), F)`` and ``h_lin(m, t) -> (h(m, t), H)``."""
+def linearized_filter(f_lin: Linearize, h_lin: Linearize, angle_dims: tuple[int, ...] = ()) -> LocalFilter:
+    """A local filter from ``f_lin(m, t) -> (f(m, t), F)`` and ``h_lin(m, t) -> (h(m, t), H)``.
+
+    ``angle_dims``: measurement components that are angles; their innovations are wrapped into
+    ``[-pi, pi)``.
+    """
 
     def predict(state: GaussianState, t, noise_mean, noise_cov) -> GaussianState:
         fm, F = f_lin(state.mean, t)
@@ -53,7 +58,7 @@ def linearized_filter(f_lin: Linearize, h_lin: Linearize) -> LocalFilter:
         S = gaussian.symmetrize(H @ P @ H.T + noise_cov)
         chol_S = safe_chol(S)
         K = kalman_gain(P @ H.T, chol_S.factor)
-        y = z - z_hat
+        y = wrap_angles(z - z_hat, angle_dims)
         mean = m + K @ y
         A = jnp.eye(m.shape[0], dtype=P.dtype) - K @ H
         cov, rep_post = repair_cov(A @ P @ A.T + K @ noise_cov @ K.T)

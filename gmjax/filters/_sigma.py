@@ -38,11 +38,13 @@ from gmjax.filters._core import (
     loglik_from_chol,
     repair_cov,
     safe_chol,
+    circular_mean,
     safe_z,
     select_state,
+    wrap_angles,
 )
 from gmjax.filters.base import Filter
-from gmjax.models.base import StateSpaceModel
+from gmjax.models.base import StateSpaceModel, as_step_fn
 from gmjax.quadrature import SigmaPoints
 
 __all__ = ["check_rule", "rule_getter", "weighted_cov", "local_sigma", "build_sigma"]
@@ -93,7 +95,8 @@ def weighted_cov(wc, A, B):
     return jnp.einsum("n,ni,nj->ij", wc, A, B)
 
 
-def local_sigma(f: StepFn, h: StepFn, rule: SigmaPoints | Callable[..., SigmaPoints]) -> LocalFilter:
+def local_sigma(f: StepFn, h: StepFn, rule: SigmaPoints | Callable[..., SigmaPoints],
+                angle_dims: tuple[int, ...] = ()) -> LocalFilter:
     """Sigma-point Kalman filter with the quadrature ``rule`` (see the module docstring).
 
     Args:
@@ -101,14 +104,18 @@ def local_sigma(f: StepFn, h: StepFn, rule: SigmaPoints | Callable[..., SigmaPoi
         h: ``h(x (d,), t) -> (m,)``.
         rule: a :class:`SigmaPoints` for ``N(0, I_d)``, or a constructor
             ``(d, dtype) -> SigmaPoints`` called at trace time with the state's size.
+        angle_dims: measurement components that are angles: the predicted measurement averages
+            them on the circle (:func:`~gmjax.filters._core.circular_mean`) and the deviations and
+            the innovation are wrapped into ``[-pi, pi)``.
 
     Returns:
         A :class:`LocalFilter` over :class:`GaussianState`. The update's ``repaired`` flag is set
         when the predicted covariance, ``S`` or the posterior covariance needed jitter.
     """
     get_rule = rule_getter(rule)
-    fv = jax.vmap(f, in_axes=(0, None))
-    hv = jax.vmap(h, in_axes=(0, None))
+    angle_dims = tuple(angle_dims)
+    fv = jax.vmap(as_step_fn(f), in_axes=(0, None))
+    hv = jax.vmap(as_step_fn(h), in_axes=(0, None))
 
     def predict(state: GaussianState, t, noise_mean, noise_cov) -> GaussianState:
         rule = get_rule(state.mean.shape[-1], state.mean.dtype)
@@ -127,15 +134,15 @@ def local_sigma(f: StepFn, h: StepFn, rule: SigmaPoints | Callable[..., SigmaPoi
         chol_P = safe_chol(P)
         X = quadrature.transform(rule, m, chol_P.factor, is_chol=True)
         Z = hv(X, t)
-        z0 = wm @ Z
+        z0 = circular_mean(Z, wm, angle_dims)
         z_hat = z0 + noise_mean
         missing, z = safe_z(z, z_hat)
-        dZ = Z - z0
+        dZ = wrap_angles(Z - z0, angle_dims)
         S = gaussian.symmetrize(weighted_cov(wc, dZ, dZ) + noise_cov)
         Pxz = weighted_cov(wc, X - m, dZ)
         chol_S = safe_chol(S)
         K = kalman_gain(Pxz, chol_S.factor)
-        y = z - z_hat
+        y = wrap_angles(z - z_hat, angle_dims)
         mean = m + K @ y
         cov, rep_post = repair_cov(P - K @ S @ K.T)
         ll = loglik_from_chol(y, chol_S.factor)
@@ -151,4 +158,5 @@ def build_sigma(model: StateSpaceModel, rule: SigmaPoints) -> Filter:
     rule = check_rule(rule)
     if rule.dim != d:
         raise ValueError(f"rule: dimension {rule.dim} does not match the state dimension {d}")
-    return from_local(model, local_sigma(model.f, model.h, rule))
+    f, h, _, _ = model.step_fns()
+    return from_local(model, local_sigma(f, h, rule, model.angle_dims))

@@ -19,12 +19,13 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_ckf", "build_ckf"]
 
 
-def local_ckf(f: StepFn, h: StepFn) -> LocalFilter:
+def local_ckf(f: StepFn, h: StepFn, angle_dims: tuple[int, ...] = ()) -> LocalFilter:
     """Cubature KF: third-degree spherical-radial rule, ``2d`` points (seed 001 eq 7)."""
-    return local_sigma(f, h, lambda d, dtype: quadrature.cubature(d, dtype=dtype))
+    return local_sigma(f, h, lambda d, dtype: quadrature.cubature(d, dtype=dtype), angle_dims)
 
 
 def build_ckf(model: StateSpaceModel) -> Filter:
     """Model-level cubature KF (GM noises/prior moment-matched)."""
     d, _ = check_model(model)
-    return from_local(model, local_ckf(model.f, model.h))
+    f, h, _, _ = model.step_fns()
+    return from_local(model, local_ckf(f, h, model.angle_dims))

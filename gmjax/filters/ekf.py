@@ -11,12 +11,13 @@ from gmjax.filters._core import (
 )
 from gmjax.filters._linearized import linearized_filter, with_jacobian
 from gmjax.filters.base import Filter
-from gmjax.models.base import StateSpaceModel
+from gmjax.models.base import StateSpaceModel, as_step_fn
 
 __all__ = ["local_ekf", "build_ekf"]
 
 
-def local_ekf(f: StepFn, h: StepFn, f_jacobian: StepFn | None = None, h_jacobian: StepFn | None = None) -> LocalFilter:
+def local_ekf(f: StepFn, h: StepFn, f_jacobian: StepFn | None = None, h_jacobian: StepFn | None = None,
+              angle_dims: tuple[int, ...] = ()) -> LocalFilter:
     """Extended Kalman filter (first-order linearisation at the mean; seed 000 eqs 3–18 per component).
 
     Args:
@@ -28,7 +29,8 @@ def local_ekf(f: StepFn, h: StepFn, f_jacobian: StepFn | None = None, h_jacobian
     Returns:
         A :class:`LocalFilter` over :class:`GaussianState`.
     """
-    return linearized_filter(with_jacobian(f, f_jacobian), with_jacobian(h, h_jacobian))
+    f, h, f_jacobian, h_jacobian = (as_step_fn(g) for g in (f, h, f_jacobian, h_jacobian))
+    return linearized_filter(with_jacobian(f, f_jacobian), with_jacobian(h, h_jacobian), tuple(angle_dims))
 
 
 def build_ekf(model: StateSpaceModel) -> Filter:
@@ -37,6 +39,4 @@ def build_ekf(model: StateSpaceModel) -> Filter:
     GM noises and a GM prior are moment-matched (see :func:`gmjax.filters.from_local`).
     """
     check_model(model)
-    return from_local(
-        model, local_ekf(model.f, model.h, model.f_jacobian, model.h_jacobian)
-    )
+    return from_local(model, local_ekf(*model.step_fns(), model.angle_dims))

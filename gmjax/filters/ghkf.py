@@ -19,13 +19,14 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_ghkf", "build_ghkf"]
 
 
-def local_ghkf(f: StepFn, h: StepFn, order: int = 3) -> LocalFilter:
+def local_ghkf(f: StepFn, h: StepFn, order: int = 3, angle_dims: tuple[int, ...] = ()) -> LocalFilter:
     """Gauss–Hermite KF: tensor rule with ``order^d`` points (seed 002 eqs 35–38)."""
     quadrature.gauss_hermite(1, order)  # validate eagerly
-    return local_sigma(f, h, lambda d, dtype: quadrature.gauss_hermite(d, order, dtype=dtype))
+    return local_sigma(f, h, lambda d, dtype: quadrature.gauss_hermite(d, order, dtype=dtype), angle_dims)
 
 
 def build_ghkf(model: StateSpaceModel, order: int = 3) -> Filter:
     """Model-level Gauss–Hermite KF (GM noises/prior moment-matched)."""
     d, _ = check_model(model)
-    return from_local(model, local_ghkf(model.f, model.h, order))
+    f, h, _, _ = model.step_fns()
+    return from_local(model, local_ghkf(f, h, order, model.angle_dims))

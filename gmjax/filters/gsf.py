@@ -265,12 +265,13 @@ def build_gsf(
     def predict(params: GSFParams, state: GSFState, inputs: StepInputs, *,
                 key: PRNGKey | None = None) -> GSFState:
         del key
-        predicted = gs_predict(local, state.mixture, inputs.t, params.model.process_noise)
+        noise = model.noise_at(params.model.process_noise, inputs)  # e.g. Q(dt)
+        predicted = gs_predict(local, state.mixture, inputs, noise)
         return GSFState(predicted, inherit(state.reducer_state, n_q))
 
     def update(params: GSFParams, state: GSFState, z: Array, inputs: StepInputs, *,
                key: PRNGKey | None = None) -> tuple[GSFState, StepInfo]:
-        up = gs_update(local, state.mixture, z, inputs.t, params.model.measurement_noise)
+        up = gs_update(local, state.mixture, z, inputs, params.model.measurement_noise)
         reduced, rstate, rinfo, overflow = reduce_to_capacity(
             params.reducer, up.mixture, inherit(state.reducer_state, n_r), capacity, key=key)
         if truncate_only:

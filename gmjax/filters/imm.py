@@ -232,7 +232,8 @@ def build_imm(
     moments = imm_moments(base)
 
     def pred_branch(j: int) -> Callable:
-        return lambda p, s, t: locals_[j].predict(s, t, *gaussian_moments(p.models[j].process_noise))
+        return lambda p, s, t: locals_[j].predict(
+            s, t, *gaussian_moments(models[j].noise_at(p.models[j].process_noise, t)))
 
     def upd_branch(j: int) -> Callable:
         return lambda p, s, z, t: locals_[j].update(s, z, t, *gaussian_moments(p.models[j].measurement_noise))
@@ -254,7 +255,7 @@ def build_imm(
 
         def one(args):
             j, s = args
-            return jax.lax.switch(j, pred_branches, params, s, inputs.t)
+            return jax.lax.switch(j, pred_branches, params, s, inputs)
 
         return IMMState(jax.lax.map(one, (jnp.arange(M), mixed)), log_c)
 
@@ -265,7 +266,7 @@ def build_imm(
 
         def one(args):
             j, s = args
-            return jax.lax.switch(j, upd_branches, params, s, z, inputs.t)
+            return jax.lax.switch(j, upd_branches, params, s, z, inputs)
 
         states, infos = jax.lax.map(one, (jnp.arange(M), state.states))
         log_mu, loglik, degenerate = _posterior_probs(state.log_probs, infos.loglik, z)

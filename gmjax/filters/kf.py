@@ -72,7 +72,8 @@ def build_kf(model: StateSpaceModel) -> Filter:
     :func:`build_ekf` (this filter would then be an EKF linearised at 0, which is wrong).
     """
     check_model(model)
-    return from_local(model, linearized_filter(affine_parts(model.f), affine_parts(model.h)))
+    f, h, _, _ = model.step_fns()
+    return from_local(model, linearized_filter(affine_parts(f), affine_parts(h), model.angle_dims))
 
 
 class LinearGaussianParams(NamedTuple):

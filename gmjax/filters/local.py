@@ -17,13 +17,14 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["LOCAL_FILTERS", "local_filter_for"]
 
 LOCAL_FILTERS: dict[str, Callable[..., LocalFilter]] = {
-    "kf": lambda m, **kw: linearized_filter(affine_parts(m.f), affine_parts(m.h)),
-    "ekf": lambda m, **kw: ekf.local_ekf(m.f, m.h, m.f_jacobian, m.h_jacobian),
-    "ukf": lambda m, **kw: ukf.local_ukf(m.f, m.h, **kw),
-    "ckf": lambda m, **kw: ckf.local_ckf(m.f, m.h),
-    "ghkf": lambda m, **kw: ghkf.local_ghkf(m.f, m.h, **kw),
-    "sgkf": lambda m, **kw: sgkf.local_sgkf(m.f, m.h, **kw),
-    "sckf": lambda m, **kw: sckf.local_sckf(m.f, m.h),
+    "kf": lambda m, **kw: linearized_filter(affine_parts(m.step_fns()[0]), affine_parts(m.step_fns()[1]),
+                                            m.angle_dims),
+    "ekf": lambda m, **kw: ekf.local_ekf(*m.step_fns(), m.angle_dims),
+    "ukf": lambda m, **kw: ukf.local_ukf(*m.step_fns()[:2], **kw, angle_dims=m.angle_dims),
+    "ckf": lambda m, **kw: ckf.local_ckf(*m.step_fns()[:2], m.angle_dims),
+    "ghkf": lambda m, **kw: ghkf.local_ghkf(*m.step_fns()[:2], **kw, angle_dims=m.angle_dims),
+    "sgkf": lambda m, **kw: sgkf.local_sgkf(*m.step_fns()[:2], **kw, angle_dims=m.angle_dims),
+    "sckf": lambda m, **kw: sckf.local_sckf(*m.step_fns()[:2], m.angle_dims),
 }
 
 

@@ -36,7 +36,7 @@ from gmjax._types import Array, PRNGKey
 from gmjax.filters._core import check_model, is_missing, loglik_from_chol, safe_chol
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
 from gmjax.mixture import GaussianMixture
-from gmjax.models.base import ModelParams, StateSpaceModel
+from gmjax.models.base import ModelParams, StateSpaceModel, wrap_angles
 
 __all__ = [
     "TimedSampler",
@@ -374,8 +374,10 @@ def build_pf(
     resample = RESAMPLERS[resampling]
     sample_v = _process_sampler(process_noise)
     meas_lp = _measurement_logpdf(measurement_noise)
-    fv = jax.vmap(model.f, in_axes=(0, None))
-    hv = jax.vmap(model.h, in_axes=(0, None))
+    f_step, h_step, _, _ = model.step_fns()
+    fv = jax.vmap(f_step, in_axes=(0, None))
+    hv = jax.vmap(h_step, in_axes=(0, None))
+    angle_dims = tuple(model.angle_dims)
 
     def init(params: PFParams, prior: GaussianMixture | None = None, *,
              key: PRNGKey | None = None) -> PFState:
@@ -389,19 +391,20 @@ def build_pf(
     def predict(params: PFParams, state: PFState, inputs: StepInputs, *,
                 key: PRNGKey | None = None) -> PFState:
         key = _require_key(key, "predict")
-        t = inputs.t
-        v = sample_v(params.model.process_noise, key, (N,), t).astype(state.particles.dtype)
-        return PFState(fv(state.particles, t) + v, state.log_weights)
+        noise = model.noise_at(params.model.process_noise, inputs)  # e.g. Q(dt)
+        v = sample_v(noise, key, (N,), inputs.t).astype(state.particles.dtype)
+        return PFState(fv(state.particles, inputs) + v, state.log_weights)
 
     def update(params: PFParams, state: PFState, z: Array, inputs: StepInputs, *,
                key: PRNGKey | None = None) -> tuple[PFState, StepInfo]:
         key = _require_key(key, "update")
         z = jnp.asarray(z)
         missing = is_missing(z)
-        x, t = state.particles, inputs.t
-        pred = hv(x, t)
+        x = state.particles
+        pred = hv(x, inputs)
         z_safe = jnp.where(missing, pred[0], z)
-        ll_i = jax.vmap(meas_lp(params.model.measurement_noise))(z_safe - pred)
+        residual = wrap_angles(z_safe - pred, angle_dims)  # angles: the residual on the circle
+        ll_i = jax.vmap(meas_lp(params.model.measurement_noise))(residual)
         lw, loglik, degenerate = _reweight(state.log_weights, ll_i, missing)
         ess = effective_sample_size(lw)
         do_rs = (ess < jnp.asarray(params.ess_threshold, ess.dtype) * N) & ~missing

@@ -22,12 +22,14 @@ from gmjax.filters._core import (
     from_local,
     loglik_from_chol,
     safe_chol,
+    circular_mean,
     safe_z,
     select_state,
+    wrap_angles,
 )
 from gmjax.filters._sigma import rule_getter
 from gmjax.filters.base import Filter
-from gmjax.models.base import StateSpaceModel
+from gmjax.models.base import StateSpaceModel, as_step_fn
 
 __all__ = ["local_sckf", "build_sckf", "tria"]
 
@@ -63,7 +65,7 @@ def _fix_factor(S):
     return jnp.where(bad, res.factor, S), bad
 
 
-def local_sckf(f: StepFn, h: StepFn) -> LocalFilter:
+def local_sckf(f: StepFn, h: StepFn, angle_dims: tuple[int, ...] = ()) -> LocalFilter:
     """Square-root cubature Kalman filter (seed 001 eqs 8–22).
 
     State: :class:`SqrtState` ``(mean, chol)``. Predict (eqs 8–12):
@@ -76,8 +78,9 @@ def local_sckf(f: StepFn, h: StepFn) -> LocalFilter:
     ``S_Q``, ``S_R`` are Cholesky factors of the noise covariances (repaired if needed; the
     update flags a repaired ``R`` or a singular factor).
     """
-    fv = jax.vmap(f, in_axes=(0, None))
-    hv = jax.vmap(h, in_axes=(0, None))
+    angle_dims = tuple(angle_dims)  # angular measurement components: circular mean, wrapped residuals
+    fv = jax.vmap(as_step_fn(f), in_axes=(0, None))
+    hv = jax.vmap(as_step_fn(h), in_axes=(0, None))
     get_rule = rule_getter(lambda d, dtype: quadrature.cubature(d, dtype=dtype))
 
     def _rule_and_scale(m):
@@ -99,10 +102,10 @@ def local_sckf(f: StepFn, h: StepFn) -> LocalFilter:
         rule, scale = _rule_and_scale(m)
         X = quadrature.transform(rule, m, S, is_chol=True)  # eq 13
         Zp = hv(X, t)  # eq 14
-        z0 = jnp.mean(Zp, axis=0)  # eq 15
+        z0 = circular_mean(Zp, jnp.full(Zp.shape[0], 1.0 / Zp.shape[0], Zp.dtype), angle_dims)  # eq 15
         z_hat = z0 + noise_mean
         missing, z = safe_z(z, z_hat)
-        Zc = (Zp - z0).T * scale  # eq 17
+        Zc = wrap_angles(Zp - z0, angle_dims).T * scale  # eq 17
         chol_R = safe_chol(noise_cov)
         S_R = chol_R.factor
         S_zz, bad_zz = _fix_factor(tria(jnp.concatenate([Zc, S_R], axis=1)))  # eq 16
@@ -112,7 +115,7 @@ def local_sckf(f: StepFn, h: StepFn) -> LocalFilter:
         W = solve_triangular(
             S_zz.T, solve_triangular(S_zz, Pxz.T, lower=True), lower=False
         ).T
-        y = z - z_hat
+        y = wrap_angles(z - z_hat, angle_dims)
         mean = m + W @ y  # eq 21
         S_new, bad_post = _fix_factor(
             tria(jnp.concatenate([chi - W @ Zc, W @ S_R], axis=1))
@@ -129,4 +132,5 @@ def local_sckf(f: StepFn, h: StepFn) -> LocalFilter:
 def build_sckf(model: StateSpaceModel) -> Filter:
     """Model-level square-root cubature KF (GM noises/prior moment-matched)."""
     d, _ = check_model(model)
-    return from_local(model, local_sckf(model.f, model.h))
+    f, h, _, _ = model.step_fns()
+    return from_local(model, local_sckf(f, h, model.angle_dims))

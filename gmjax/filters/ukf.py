@@ -19,7 +19,8 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_ukf", "build_ukf"]
 
 
-def local_ukf(f: StepFn, h: StepFn, alpha: float = 1.0, beta: float = 0.0, kappa: float | None = None) -> LocalFilter:
+def local_ukf(f: StepFn, h: StepFn, alpha: float = 1.0, beta: float = 0.0, kappa: float | None = None,
+              angle_dims: tuple[int, ...] = ()) -> LocalFilter:
     """Unscented KF with the scaled UT (seed 002 eqs 27–32; defaults of :func:`quadrature.unscented`).
 
     FilterPy's ``MerweScaledSigmaPoints(d, alpha, beta, kappa)`` is the same point set.
@@ -34,7 +35,7 @@ def local_ukf(f: StepFn, h: StepFn, alpha: float = 1.0, beta: float = 0.0, kappa
     """
     quadrature.unscented(1, alpha, beta, 0.0 if kappa is None else max(float(kappa), 0.0))
     return local_sigma(
-        f, h, lambda d, dtype: quadrature.unscented(d, alpha, beta, kappa, dtype=dtype)
+        f, h, lambda d, dtype: quadrature.unscented(d, alpha, beta, kappa, dtype=dtype), angle_dims
     )
 
 
@@ -44,4 +45,5 @@ def build_ukf(
     """Model-level UKF (scaled UT; GM noises/prior moment-matched)."""
     d, _ = check_model(model)
     quadrature.unscented(d, alpha, beta, kappa)  # validate eagerly
-    return from_local(model, local_ukf(model.f, model.h, alpha, beta, kappa))
+    f, h, _, _ = model.step_fns()
+    return from_local(model, local_ukf(f, h, alpha, beta, kappa, model.angle_dims))
