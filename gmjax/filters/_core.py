@@ -182,6 +182,17 @@ def _is_concrete(tree) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
+def _output_shape(model: StateSpaceModel, name: str, fn, x, inputs):
+    """``jax.eval_shape`` of a model function; ``None`` when it needs a control or other inputs that
+    only the run provides (its shape is then checked when the filter is first traced)."""
+    try:
+        return jax.eval_shape(fn, x, inputs)
+    except Exception:
+        if call_convention(getattr(model, name), model.call, name) == "t":
+            raise
+        return None
+
+
 def check_model(model: StateSpaceModel) -> tuple[int, int]:
     """Eagerly validate a model: noise/prior dims, ``f``/``h`` output shapes, PD covariances.
 
@@ -214,11 +225,11 @@ def check_model(model: StateSpaceModel) -> tuple[int, int]:
     x = jax.ShapeDtypeStruct((d,), model.prior.means.dtype)
     inputs = StepInputs(t=jax.ShapeDtypeStruct((), jnp.int32))
     f, h, _, _ = model.step_fns()
-    fo = jax.eval_shape(f, x, inputs)
-    if getattr(fo, "shape", None) != (d,):
+    fo = _output_shape(model, "f", f, x, inputs)
+    if fo is not None and getattr(fo, "shape", None) != (d,):
         raise ValueError(f"model.f: must map a ({d},) state to ({d},), returned {fo.shape}")
-    ho = jax.eval_shape(h, x, inputs)
-    if getattr(ho, "shape", None) != (m,):
+    ho = _output_shape(model, "h", h, x, inputs)
+    if ho is not None and getattr(ho, "shape", None) != (m,):
         raise ValueError(
             f"model.h: returns shape {ho.shape}, but model.measurement_noise has dimension {m}"
         )

@@ -19,6 +19,8 @@ __all__ = [
     "as_step_fn",
     "wrap_angles",
     "CALL_CONVENTIONS",
+    "inputs_from_times",
+    "scenario_from_model",
 ]
 
 CALL_CONVENTIONS = ("t", "u,t", "inputs")
@@ -179,17 +181,23 @@ class Scenario(NamedTuple):
     and is observed as ``z_t = truth_h(x_t, t) + w_t`` with ``w_t = sample_measurement_noise(key, t)``
     for ``t = 1 .. n_steps``; ``x_0 = sample_initial(key)``. The true noises may differ from the
     mixtures in ``model`` (Gamma, glint, ...), which are what the filters assume.
+    :func:`scenario_from_model` builds one from a model in one call.
 
     Attributes:
         name: short identifier (``gmjax study NAME``).
         model: the :class:`StateSpaceModel` given to the filters.
         n_steps: ``T``.
         sample_initial: ``key -> (d,)``.
-        sample_process_noise: ``(key, t) -> (d,)``.
-        sample_measurement_noise: ``(key, t) -> (m,)``.
-        truth_f, truth_h: true dynamics / measurement function (default: the model's).
+        sample_process_noise: ``(key, t) -> (d,)`` (``(key, inputs)`` with ``noise_takes_inputs``).
+        sample_measurement_noise: ``(key, t) -> (m,)`` (likewise).
+        truth_f, truth_h: true dynamics / measurement function (default: the model's), in the
+            model's call convention (``model.call``).
         position_dims: indices of the position components (for position RMSE / CEP).
         description: one paragraph, with the paper reference and every value we had to choose.
+        inputs: per-step :class:`~gmjax.filters.StepInputs` with a leading ``T`` axis (irregular
+            times ``t``, ``dt``, controls); ``None``: times ``1..T``.
+        noise_takes_inputs: the samplers take the step's :class:`~gmjax.filters.StepInputs`
+            instead of the time ``t`` (e.g. noise that depends on ``dt``).
     """
 
     name: str
@@ -202,25 +210,112 @@ class Scenario(NamedTuple):
     truth_h: Callable[[Array, Array], Array] | None = None
     position_dims: tuple[int, ...] | None = None
     description: str = ""
+    inputs: Any = None
+    noise_takes_inputs: bool = False
 
 
-def simulate(scenario: Scenario, key: Array) -> tuple[Array, Array, Array]:
-    """Simulate one trajectory: ``(xs (T+1, d) with xs[0] = x_0, zs (T, m), ts (T,) = 1..T)``."""
+def inputs_from_times(times: ArrayLike, t0: float = 0.0, control: Any = None) -> Any:
+    """:class:`~gmjax.filters.StepInputs` for measurements at ``times (T,)``: ``t = times``,
+    ``dt = diff([t0, *times])`` and an optional ``control`` with a leading ``T`` axis.
+
+    Raises:
+        ValueError: times that are not 1-D, not finite or not increasing (from ``t0``).
+    """
+    import numpy as np
+
+    from gmjax.filters.base import StepInputs
+
+    times_np = np.asarray(times, float)
+    if times_np.ndim != 1 or times_np.size == 0 or not np.all(np.isfinite(times_np)):
+        raise ValueError(f"times: expected a non-empty finite 1-D array, got shape {times_np.shape}")
+    dts = np.diff(np.concatenate([[float(t0)], times_np]))
+    if np.any(dts <= 0):
+        bad = int(np.argmax(dts <= 0))
+        raise ValueError(f"times: must increase strictly from t0={t0} (first bad step {bad})")
+    dtype = jnp.zeros(()).dtype
+    return StepInputs(t=jnp.asarray(times_np, dtype), dt=jnp.asarray(dts, dtype), control=control)
+
+
+def simulate(scenario: Scenario, key: Array, inputs: Any = None) -> tuple[Array, Array, Any]:
+    """Simulate one trajectory.
+
+    Args:
+        scenario: the scenario.
+        key: PRNG key.
+        inputs: per-step :class:`~gmjax.filters.StepInputs` (default ``scenario.inputs``).
+
+    Returns:
+        ``(xs (T+1, d) with xs[0] = x_0, zs (T, m), ts)``: ``ts`` is the ``(T,)`` times ``1..T`` when
+        the scenario has no inputs, else the :class:`~gmjax.filters.StepInputs` (pass either to
+        :func:`gmjax.filters.run`).
+    """
     import jax
-    import jax.numpy as jnp
 
-    f = scenario.truth_f or scenario.model.f
-    h = scenario.truth_h or scenario.model.h
+    from gmjax.filters.base import step_inputs
+
+    inputs = scenario.inputs if inputs is None else inputs
+    model = scenario.model
+    f = as_step_fn(scenario.truth_f or model.f, model.call, "truth_f")
+    h = as_step_fn(scenario.truth_h or model.h, model.call, "truth_h")
     k0, kv, kw = jax.random.split(key, 3)
     x0 = scenario.sample_initial(k0)
     T = scenario.n_steps
-    ts = jnp.arange(1, T + 1, dtype=jnp.int32)
+    steps = step_inputs(T, inputs)
+    by_inputs = scenario.noise_takes_inputs
 
-    def step(x, inputs):
-        t, kvt, kwt = inputs
-        x = f(x, t) + scenario.sample_process_noise(kvt, t)
-        z = h(x, t) + scenario.sample_measurement_noise(kwt, t)
+    def step(x, xs):
+        inp, kvt, kwt = xs
+        arg = inp if by_inputs else inp.t
+        x = f(x, inp) + scenario.sample_process_noise(kvt, arg)
+        z = h(x, inp) + scenario.sample_measurement_noise(kwt, arg)
         return x, (x, z)
 
-    _, (xs, zs) = jax.lax.scan(step, x0, (ts, jax.random.split(kv, T), jax.random.split(kw, T)))
-    return jnp.concatenate([x0[None], xs]), zs, ts
+    _, (xs, zs) = jax.lax.scan(step, x0, (steps, jax.random.split(kv, T), jax.random.split(kw, T)))
+    return jnp.concatenate([x0[None], xs]), zs, (steps.t if inputs is None else steps)
+
+
+def scenario_from_model(
+    model: StateSpaceModel,
+    n_steps: int,
+    *,
+    name: str = "model",
+    inputs: Any = None,
+    sample_initial: Callable[[Array], Array] | None = None,
+    sample_process_noise: Callable | None = None,
+    sample_measurement_noise: Callable | None = None,
+    position_dims: tuple[int, ...] | None = None,
+    description: str = "",
+) -> Scenario:
+    """A :class:`Scenario` whose truth is the model itself, in one call.
+
+    Defaults: ``x_0`` from ``model.prior``, the process noise from the model's mixture at each step
+    (through ``process_noise_at``, so ``Q(dt)`` with irregular times), the measurement noise from
+    its mixture. Pass any sampler to replace one (e.g. a glint sampler,
+    :func:`gmjax.models.noise.glint`); custom samplers take ``(key, inputs)``.
+
+    Args:
+        model: the model the filters assume (and, by default, the truth).
+        n_steps: ``T``.
+        inputs: per-step :class:`~gmjax.filters.StepInputs` (e.g. :func:`inputs_from_times`).
+    """
+    from gmjax import mixture as gmm
+
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+        raise ValueError(f"n_steps: must be a positive int, got {n_steps!r}")
+    if inputs is not None:
+        from gmjax.filters.base import step_inputs
+
+        inputs = step_inputs(n_steps, inputs)
+
+    def draw(gm, key):
+        return gmm.sample(gm, key, 1)[0]
+
+    return Scenario(
+        name=name, model=model, n_steps=n_steps,
+        sample_initial=sample_initial or (lambda key: draw(model.prior, key)),
+        sample_process_noise=sample_process_noise
+        or (lambda key, inp: draw(model.noise_at(model.process_noise, inp), key)),
+        sample_measurement_noise=sample_measurement_noise
+        or (lambda key, inp: draw(model.measurement_noise, key)),
+        position_dims=position_dims, description=description, inputs=inputs, noise_takes_inputs=True,
+    )
