@@ -784,7 +784,7 @@ def build_agsf(
         )
     sz = _Sizes(C=C, Q=Q, K_post=C // Q, N_lim=min(config.n_max, C), L=config.max_level)
     gate = hard_gate if config.split_gate is None else config.split_gate
-    h = model.h
+    h = model.step_fns()[1]  # h(x, inputs): the whole StepInputs reaches the model
     static = _static_part(config)
 
     def check_params(params: AGSFParams) -> AGSFConfig:
@@ -802,7 +802,8 @@ def build_agsf(
         del key
         check_params(params)
         K = state.mixture.capacity
-        predicted = gs_predict(local, state.mixture, inputs.t, params.model.process_noise)
+        noise = model.noise_at(params.model.process_noise, inputs)  # e.g. Q(dt)
+        predicted = gs_predict(local, state.mixture, inputs, noise)
         predicted, step6 = _noise_major((predicted, inherit(state.step6, Q)), K, Q)
         return AGSFState(gmm.pad(predicted, C), _pad_slots(step6, C))
 
@@ -810,7 +811,7 @@ def build_agsf(
                key: PRNGKey | None = None) -> tuple[AGSFState, StepInfo]:
         """Steps 2–6 (eqs 26–39) on the ``capacity`` working slots."""
         cfg = check_params(params)
-        t = inputs.t
+        t = inputs
         gm, step6 = state
         if gm.capacity < C:  # no prediction before this update
             gm, step6 = gmm.pad(gm, C), _pad_slots(step6, C)
