@@ -19,8 +19,9 @@ filter-specific.
 
 Time indexing of :func:`run`: the initial state describes ``x_0``; step ``k = 0 .. T-1`` predicts to
 ``inputs.t[k]`` and updates with ``zs[k]``, so ``states[k]`` is the posterior at ``inputs.t[k]``
-given ``zs[:k+1]``. The default times are ``1, 2, ..., T``. A measurement holding a NaN is a
-predict-only step (log-likelihood 0).
+given ``zs[:k+1]``. The default times are ``1, 2, ..., T``. A measurement with any non-finite
+entry (NaN or ``±inf``) is a predict-only step (log-likelihood 0) and raises
+``StepFlags.nonfinite_measurement``; every filter recovers at the next finite measurement.
 """
 
 from __future__ import annotations
@@ -61,22 +62,27 @@ class StepFlags(NamedTuple):
         repaired: a covariance was not numerically positive definite and was repaired.
         overflow: more components survived than the capacity holds (the heaviest were kept).
         degenerate: every likelihood underflowed (weights kept at their predicted values), or a
-            particle cloud collapsed.
+            particle cloud collapsed (its effective sample size fell below 1.5 particles).
+        nonfinite_measurement: the measurement held a NaN or an infinite entry; the step was
+            predict-only (state = prediction, log-likelihood 0). A NaN is also the way to mark a
+            missing measurement on purpose; the flag then records that the step had no data, so
+            :meth:`any` (what a Monte Carlo study counts) includes such steps.
     """
 
     repaired: Array
     overflow: Array
     degenerate: Array
+    nonfinite_measurement: Array
 
     def any(self) -> Array:
         """``()`` bool: any flag raised."""
-        return self.repaired | self.overflow | self.degenerate
+        return self.repaired | self.overflow | self.degenerate | self.nonfinite_measurement
 
 
 def no_flags() -> StepFlags:
     """All flags down."""
     f = jnp.zeros((), bool)
-    return StepFlags(f, f, f)
+    return StepFlags(f, f, f, f)
 
 
 class StepInfo(NamedTuple):
@@ -111,7 +117,7 @@ class Filter(NamedTuple):
         init: ``(params, prior: GaussianMixture | None, *, key) -> state``.
         predict: ``(params, state, inputs: StepInputs, *, key) -> state``.
         update: ``(params, state, z (m,), inputs: StepInputs, *, key) -> (state, StepInfo)``; a ``z``
-            holding a NaN is a predict-only step.
+            with a NaN or ``±inf`` entry is a predict-only step, flagged ``nonfinite_measurement``.
         params: the default parameter pytree (from the model and the configuration); replace it to
             vmap, differentiate or tune.
     """
@@ -170,7 +176,8 @@ def run(
 
     Args:
         filter: the filter.
-        zs: ``(T, m)`` measurements; a row holding a NaN is a predict-only step.
+        zs: ``(T, m)`` measurements; a row with a NaN or ``±inf`` entry is a predict-only step
+            (flagged ``nonfinite_measurement``).
         inputs: per-step inputs: ``None`` (times ``1..T``), a ``(T,)`` array of times, or a
             :class:`StepInputs` with a leading ``T`` axis.
         key: PRNG key (required by filters that draw: particle filters, randomised reducers);

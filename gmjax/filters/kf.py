@@ -126,6 +126,6 @@ def kalman_filter(F, H, Q, R, prior_mean, prior_cov) -> Filter:
         del key
         loc = local(p)
         new, info = loc.update(state, z, inputs.t, jnp.zeros(p.R.shape[0], state.mean.dtype), p.R)
-        return new, local_step_info(loc, new, info)
+        return new, local_step_info(loc, new, info, z)
 
     return Filter(init, predict, update, params)
