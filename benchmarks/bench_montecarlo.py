@@ -29,7 +29,8 @@ from _common import markdown_table, write_results  # noqa: E402
 from reference import gsf_np, pcm_numpy  # noqa: E402
 
 from gmjax.filters.gsf import build_gsf  # noqa: E402
-from gmjax.models import seed000, simulate  # noqa: E402
+from gmjax.models import simulate  # noqa: E402
+from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
 
@@ -69,7 +70,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     runs = args.runs or ([1, 8] if args.quick else [1, 100, 1000, 10000])
     n_np = args.numpy_runs or (1 if args.quick else 3)
-    scenario = seed000.jump_system()
+    scenario = jump_system()
     if args.quick:
         scenario = scenario._replace(n_steps=20)
 

@@ -41,7 +41,8 @@ from reference.pcrb_ref import (  # noqa: E402
     split_1d,
 )
 
-from gmjax.models.pcrb_scenarios import satellite, ungm, ungm_gmm_setup  # noqa: E402
+from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup  # noqa: E402
+from gmjax.scenarios.satellite_pass import satellite  # noqa: E402
 from gmjax.pcrb import build_pcrb_gmm, pcrb_mc  # noqa: E402
 from gmjax.quadrature import gauss_hermite, smolyak  # noqa: E402
 from gmjax.split import gauss_hermite_library  # noqa: E402

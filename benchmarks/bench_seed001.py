@@ -37,13 +37,8 @@ from gmjax.filters import build_sckf, build_ukf  # noqa: E402
 from gmjax.filters.agsf import build_agsf, build_gsckf, build_gsukf  # noqa: E402
 from gmjax.filters.pf import build_pf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.models.seed001 import (  # noqa: E402
-    BEARINGS_SENSORS,
-    GAMMA_PRIOR,
-    GAMMA_PROCESS_NOISE,
-    bearings_only,
-    gamma_system,
-)
+from gmjax.scenarios.bearings_only import BEARINGS_SENSORS, bearings_only  # noqa: E402
+from gmjax.scenarios.gamma_system import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
 from gmjax.montecarlo import score_run, summarize  # noqa: E402
 
 FILTERS = ["UKF", "SCKF", "GSUKF", "GSCKF", "AGSSCKF", "PF"]
@@ -232,7 +227,7 @@ def main(argv=None):
             title = "## Table 2: 1-D system with Gamma process noise (eqs 44–47)"
             note = ("The paper's Table 2 covers k ≤ 30 (quadratic measurement); after k = 30 the measurement "
                     "is linear (DON = 0, no splitting). The truth uses Ga(3, 2) as shape 3, scale 2 (mean 6) "
-                    "while eq 47 has mean 4.25 (see `gmjax.models.seed001.gamma_system`); our ARMSE scale is "
+                    "while eq 47 has mean 4.25 (see `gmjax.scenarios.gamma_system.gamma_system`); our ARMSE scale is "
                     "far below the paper's (whose RMSE of 16–33 for a state of size ~10 we cannot reproduce "
                     "from the printed model). The PF's NEES is astronomically large: with a measurement noise "
                     "variance of 1e-5 its particle cloud collapses after resampling (sample impoverishment), so "
@@ -246,7 +241,7 @@ def main(argv=None):
             note = ("The paper's AGSSCKF and PF ARMSE (0.9234, 0.8021) are ten times its other entries and "
                     "are probably misprints of 0.09234 and 0.08021. Choices the paper leaves open (dt = 0.01, "
                     "the truth = Särkkä's curved bot_demo trajectory, eq 50 read as a mixture over the white "
-                    "acceleration) are documented in `gmjax.models.seed001.bearings_only`. Here the DON of "
+                    "acceleration) are documented in `gmjax.scenarios.bearings_only.bearings_only`. Here the DON of "
                     "every component stays below 0.2 psi_th = 0.004 after the first steps, so Step 6's rule 3 "
                     "merges all components into one at every step and the Gaussian sum filters reduce to their "
                     "local filter with moment-matched process noise (GSUKF and UKF, GSCKF and SCKF agree to the digits shown); AGSSCKF's "

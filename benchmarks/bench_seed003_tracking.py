@@ -1,6 +1,6 @@
 """Seed 003 §4.2: IMM (CS + CT) tracking with Gaussian-sum model filters, four reducers, two manoeuvres.
 
-For the circular motion (§4.2.1) and the step manoeuvre (§4.2.2) of :mod:`gmjax.models.seed003`, runs
+For the circular motion (§4.2.1) and the step manoeuvre (§4.2.2) of :mod:`gmjax.scenarios.manoeuvring_target`, runs
 the IMM of :func:`gmjax.filters.imm.build_imm_gsf` (EKF components; each model's updated mixture is
 reduced to ``K`` slots every step) with GMRC, Runnalls, GMRCM (seed 003, regulariser 0.3) and GMRP
 (number-limited pruning) over 100 Monte Carlo runs, and reports the average position RMSE, the
@@ -33,7 +33,8 @@ from reference import gsf_np, imm_gsf_np  # noqa: E402
 from gmjax import metrics  # noqa: E402
 from gmjax.filters.base import run  # noqa: E402
 from gmjax.filters.imm import build_imm_gsf  # noqa: E402
-from gmjax.models import seed003, simulate  # noqa: E402
+from gmjax.models import simulate  # noqa: E402
+from gmjax.scenarios import manoeuvring_target  # noqa: E402
 from gmjax.montecarlo import RunScores, summarize  # noqa: E402
 from gmjax.reduction import GMRC, GMRCM, PruneTop, Runnalls  # noqa: E402
 
@@ -47,7 +48,7 @@ def make_reducer(name: str, K: int, gmrcm_newton: int):
     if name == "Runnalls":
         return Runnalls(num_out=K, capacity=K)
     if name == "GMRCM":
-        return GMRCM(alpha=seed003.REGULARIZER, capacity=K, newton_steps=gmrcm_newton)
+        return GMRCM(alpha=manoeuvring_target.REGULARIZER, capacity=K, newton_steps=gmrcm_newton)
     if name == "GMRP":
         return PruneTop(num_out=K, capacity=K)
     raise ValueError(f"reducer: unknown {name!r}")
@@ -102,10 +103,10 @@ def numpy_gmrp(scenario, key, K) -> tuple[float, float]:
     xs, zs = np.asarray(xs), np.asarray(zs)
     m = scenario.model
     live = lambda gm: tuple(np.asarray(a)[np.asarray(gm.mask)] for a in (gm.weights, gm.means, gm.covs))  # noqa: E731
-    Fs = [seed003.cs_transition(), seed003.ct_transition()]
+    Fs = [manoeuvring_target.cs_transition(), manoeuvring_target.ct_transition()]
     t0 = time.perf_counter()
     est, _ = imm_gsf_np.run_imm_gsf(live(m.prior), zs, Fs, np.eye(3), live(m.process_noise),
-                                    live(m.measurement_noise), seed003.TRANSITION,
+                                    live(m.measurement_noise), manoeuvring_target.TRANSITION,
                                     lambda mix: gsf_np.keep_heaviest(mix, K))
     secs = time.perf_counter() - t0
     return float(np.sqrt(np.mean((est[:, 0] - xs[1:, 0]) ** 2))), secs
@@ -159,20 +160,20 @@ def main(argv=None):
     n_np = args.numpy_runs if args.numpy_runs is not None else 1
     K = args.capacity
     key = jax.random.key(0)
-    models = seed003.imm_models()
+    models = manoeuvring_target.imm_models()
     header = ["reducer", "position ARMSE ± s.e. (m)", "paper (m)", "components (mean / max)",
               "GMRCM λ (mean)", "ms / run", "paper s / run", "compile s", "flags"]
     md = ["# Seed 003 §4.2: IMM (CS + CT) with Gaussian-sum model filters, four reducers", ""]
     data = {"runs": n_runs, "capacity_per_model": K, "gmrcm_newton_steps": args.gmrcm_newton, "motions": {}}
     curves = {}
     for motion in args.motions:
-        sc = seed003.tracking(motion)
+        sc = manoeuvring_target.tracking(motion)
         if args.quick:
             sc = sc._replace(n_steps=30)
-        paper = seed003.PAPER[motion]
+        paper = manoeuvring_target.PAPER[motion]
         rows, curves[motion], data["motions"][motion] = [], {}, {"reducers": {}}
         for name in args.reducers:
-            filt = build_imm_gsf(models, seed003.TRANSITION, local="ekf",
+            filt = build_imm_gsf(models, manoeuvring_target.TRANSITION, local="ekf",
                                  reducer=make_reducer(name, K, args.gmrcm_newton), capacity=K)
             runs_here = args.runs_gmrcm if (name == "GMRCM" and args.runs_gmrcm) else n_runs
             r, extra = run_reducer(filt, sc, jax.random.split(key, n_runs)[:runs_here])
@@ -238,7 +239,7 @@ def main(argv=None):
         "compiled kernel over all runs (vmap), compilation apart; the paper's times are MATLAB seconds "
         "per run. Timings were taken on a shared, loaded 2-core machine.",
         "",
-        "Scenario reading (see gmjax.models.seed003): z = x + v on [x, v, a] with the paper's two-component "
+        "Scenario reading (see gmjax.scenarios.manoeuvring_target): z = x + v on [x, v, a] with the paper's two-component "
         "noise; CS model = current-statistic transition with the mean acceleration set to the predicted "
         "one (equal to constant acceleration), CT model = one axis of a turn at 0.02π rad/s; both use the "
         "paper's Q = diag[10, 4, 2]; the truth follows the stated motion without process noise.",

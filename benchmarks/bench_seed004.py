@@ -3,7 +3,7 @@
 Nine filters (``gmjax.filters.bank.BANK_METHODS``) on the random-walk-velocity model (eqs 18–22,
 ``dt = 0.1080 s``). Synthetic part: Table I Models 1–3 as process *and* measurement noise, the mean
 scale ``c`` chosen so that the quadrature KL divergence to the moment-matched Gaussian hits each target
-(``gmjax.models.seed004.c_for_kl``; the paper's 2×10^5-sample Monte Carlo KL is reported beside it).
+(``gmjax.models.uwb_velocity.c_for_kl``; the paper's 2×10^5-sample Monte Carlo KL is reported beside it).
 UWB part: the Table II noise models, **simulated** from the fitted mixtures — not the paper's recorded
 UWB data, so our Table III counterpart can only be compared in kind with the paper's.
 
@@ -40,7 +40,7 @@ from _common import RESULTS_DIR, block, markdown_table, write_results  # noqa: E
 from reference.bank_np import bank_filter_np  # noqa: E402
 
 from gmjax.filters import bank  # noqa: E402
-from gmjax.models import seed004  # noqa: E402
+from gmjax.scenarios import uwb_velocity  # noqa: E402
 
 METHODS = bank.BANK_METHODS
 LABELS = {
@@ -62,7 +62,7 @@ PAPER_TABLE3 = {
 PAPER_FIG5_C = {1: 0.21, 2: 0.215, 3: 0.096}  # c for KL ~ 0.5 (Fig. 5)
 
 
-def _pad(gm: seed004.ScalarGM, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pad(gm: uwb_velocity.ScalarGM, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     k = len(gm.weights)
     return (np.concatenate([gm.weights, np.zeros(n - k)]), np.concatenate([gm.means, np.zeros(n - k)]),
             np.concatenate([gm.variances, np.ones(n - k)]))
@@ -70,13 +70,13 @@ def _pad(gm: seed004.ScalarGM, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 def _kernels(n_steps: int):
     """``method -> jitted (params, keys) -> errors (P, N, T, 1)``; params = (process, measurement) arrays."""
-    G = seed004.noise_gain()
+    G = uwb_velocity.noise_gain()
 
     def make_model(p):
-        return seed004.rwv_model(seed004.ScalarGM(*p[0]), seed004.ScalarGM(*p[1]))
+        return uwb_velocity.rwv_model(uwb_velocity.ScalarGM(*p[0]), uwb_velocity.ScalarGM(*p[1]))
 
     def simulate(p, key):
-        return seed004.simulate_labeled(seed004.ScalarGM(*p[0]), seed004.ScalarGM(*p[1]), key, n_steps=n_steps)
+        return uwb_velocity.simulate_labeled(uwb_velocity.ScalarGM(*p[0]), uwb_velocity.ScalarGM(*p[1]), key, n_steps=n_steps)
 
     return {
         m: jax.jit(lambda params, keys, m=m: bank.sweep_errors(m, make_model, simulate, params, keys, noise_gain=G))
@@ -118,15 +118,15 @@ def _run_all(kernels, params, keys) -> tuple[dict, dict, dict]:
 def _numpy_reference(params, keys, n_steps: int, n_ref: int, head: dict) -> dict:
     """Time the NumPy loop on ``n_ref`` runs of point 0 and check it against the JAX errors."""
     p0 = jax.tree_util.tree_map(lambda a: a[0], params)
-    model = seed004.rwv_model(seed004.ScalarGM(*p0[0]), seed004.ScalarGM(*p0[1]))
+    model = uwb_velocity.rwv_model(uwb_velocity.ScalarGM(*p0[0]), uwb_velocity.ScalarGM(*p0[1]))
     q, r = model.process_noise, model.measurement_noise
     mq, mr = np.asarray(q.mask), np.asarray(r.mask)
     proc = tuple(np.asarray(a)[mq] for a in (q.weights, q.means, q.covs))
     meas = tuple(np.asarray(a)[mr] for a in (r.weights, r.means, r.covs))
-    F = np.array([[1.0, seed004.DT], [0.0, 1.0]])
+    F = np.array([[1.0, uwb_velocity.DT], [0.0, 1.0]])
     H = np.array([[1.0, 0.0]])
-    G = np.asarray(seed004.noise_gain())
-    sim = jax.jit(jax.vmap(lambda k: seed004.simulate_labeled(seed004.ScalarGM(*p0[0]), seed004.ScalarGM(*p0[1]),
+    G = np.asarray(uwb_velocity.noise_gain())
+    sim = jax.jit(jax.vmap(lambda k: uwb_velocity.simulate_labeled(uwb_velocity.ScalarGM(*p0[0]), uwb_velocity.ScalarGM(*p0[1]),
                                                               k, n_steps=n_steps)))
     runs = [np.asarray(a) for a in sim(keys[:n_ref])]
     out = {}
@@ -194,11 +194,11 @@ def main(argv=None) -> dict:
     synthetic = {}
     plist, qlist = [], []
     for model in (1, 2, 3):
-        cs = [seed004.c_for_kl(model, kl) for kl in targets]
-        base = seed004.SYNTHETIC_MODELS[model]
-        gms = [seed004.ScalarGM(base.weights, tuple(c * mm for mm in base.means), base.variances) for c in cs]
-        kl_q = [seed004.kl_to_moment_matched(g) for g in gms]
-        kl_mc = [seed004.kl_to_moment_matched(g, method="mc", key=jax.random.fold_in(k_kl, 10 * model + i),
+        cs = [uwb_velocity.c_for_kl(model, kl) for kl in targets]
+        base = uwb_velocity.SYNTHETIC_MODELS[model]
+        gms = [uwb_velocity.ScalarGM(base.weights, tuple(c * mm for mm in base.means), base.variances) for c in cs]
+        kl_q = [uwb_velocity.kl_to_moment_matched(g) for g in gms]
+        kl_mc = [uwb_velocity.kl_to_moment_matched(g, method="mc", key=jax.random.fold_in(k_kl, 10 * model + i),
                                               return_stderr=True) for i, g in enumerate(gms)]
         synthetic[str(model)] = {"c": cs, "kl_target": targets, "kl_quadrature": kl_q,
                                  "kl_mc": [a for a, _ in kl_mc], "kl_mc_se": [b for _, b in kl_mc]}
@@ -221,13 +221,13 @@ def main(argv=None) -> dict:
         }
 
     # --- Table III counterpart: Table II noises, simulated, x and y padded to one shape
-    uwb_p = [_pad(seed004.UWB_NOISES[a]["process"], 9) for a in ("x", "y")]
-    uwb_m = [_pad(seed004.UWB_NOISES[a]["measurement"], 3) for a in ("x", "y")]
+    uwb_p = [_pad(uwb_velocity.UWB_NOISES[a]["process"], 9) for a in ("x", "y")]
+    uwb_m = [_pad(uwb_velocity.UWB_NOISES[a]["measurement"], 3) for a in ("x", "y")]
     uparams = (tuple(jnp.asarray(np.stack([p[i] for p in uwb_p])) for i in range(3)),
                tuple(jnp.asarray(np.stack([p[i] for p in uwb_m])) for i in range(3)))
     print("UWB (Table II models, simulated):", flush=True)
     uscores, utiming, _ = _run_all(kernels, uparams, jax.random.split(k_uwb, n_runs))
-    uwb_kl = {a: {n: seed004.kl_to_moment_matched(seed004.UWB_NOISES[a][n]) for n in ("process", "measurement")}
+    uwb_kl = {a: {n: uwb_velocity.kl_to_moment_matched(uwb_velocity.UWB_NOISES[a][n]) for n in ("process", "measurement")}
               for a in ("x", "y")}
 
     n_ref = 3 if quick else 5
@@ -238,12 +238,12 @@ def main(argv=None) -> dict:
         r["speedup"] = r["numpy_s_per_run"] / jax_per_run[m]
 
     results = {
-        "config": {"n_runs": n_runs, "n_steps": n_steps, "kl_targets": targets, "dt": seed004.DT,
+        "config": {"n_runs": n_runs, "n_steps": n_steps, "kl_targets": targets, "dt": uwb_velocity.DT,
                    "prior_cov": "100 I", "seed": args.seed},
         "synthetic": synthetic,
         "uwb_simulated": {"scores": {m: uscores[m] for m in METHODS}, "kl_quadrature": uwb_kl,
                           "paper_table3": PAPER_TABLE3},
-        "fig5_check": {str(m): {"c": c, "kl_quadrature": float(seed004.kl_curve(m, [c])[0])}
+        "fig5_check": {str(m): {"c": c, "kl_quadrature": float(uwb_velocity.kl_curve(m, [c])[0])}
                        for m, c in PAPER_FIG5_C.items()},
         "timing": {"synthetic": timing, "uwb": utiming, "synthetic_sweep_total_s": sweep_s},
         "numpy_reference": reference,

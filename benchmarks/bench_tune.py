@@ -42,7 +42,8 @@ from reference import gsf_np, pcm_numpy  # noqa: E402
 
 from gmjax import tune as gt  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
-from gmjax.models import seed000, simulate  # noqa: E402
+from gmjax.models import simulate  # noqa: E402
+from gmjax.scenarios.jump_system import JUMP_PRIOR, JUMP_PROCESS_NOISE, jump_system  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
 from gmjax.reduction.relax import soft_split_gate  # noqa: E402
@@ -86,9 +87,9 @@ def _np_jump_model(switch_step=80):
     def h(x, t):
         return x**2 / 20 if t <= switch_step else 3 * x - 4
 
-    q = tuple(np.asarray(a, float) for a in seed000.JUMP_PROCESS_NOISE)
+    q = tuple(np.asarray(a, float) for a in JUMP_PROCESS_NOISE)
     q = (q[0], q[1][:, None], q[2][:, None, None])
-    p = tuple(np.asarray(a, float) for a in seed000.JUMP_PRIOR)
+    p = tuple(np.asarray(a, float) for a in JUMP_PRIOR)
     prior = (p[0], p[1][:, None], p[2][:, None, None])
     r = (np.ones(1), np.full((1, 1), 2.0), np.full((1, 1, 1), 9.0))
     return f, h, prior, q, r
@@ -109,7 +110,7 @@ def numpy_pcm_gsf(zs, rho, lam):
 
 
 def pcm_section(args) -> dict:
-    sc = seed000.jump_system()
+    sc = jump_system()
     print(f"[PCM-GSF] {sc.description[:80]}...")
 
     def factory(p):
@@ -167,11 +168,11 @@ def pcm_section(args) -> dict:
 def agsf_section(args) -> dict | None:
     try:
         from gmjax.filters.agsf import AGSFConfig, build_agsf
-        from gmjax.models import seed001
+        from gmjax.scenarios.gamma_system import gamma_system
     except ImportError as e:  # the adaptive filter is issue 7's
         print(f"[AGSSCKF] skipped: {e}")
         return None
-    sc = seed001.gamma_system()
+    sc = gamma_system()
     tau = args.psi_temperature
     gate = soft_split_gate(tau, relative=True)
 

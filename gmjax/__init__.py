@@ -5,7 +5,8 @@ compiled kernels, ``vmap``-ed over Monte Carlo runs and ``lax.scan``-ned over ti
 never changes ``jax.config``; enable float64 yourself with ``jax.config.update("jax_enable_x64", True)``.
 
 Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`quadrature`,
-:mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`montecarlo`, :mod:`pcrb`,
+:mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`scenarios` (the papers' systems),
+:mod:`montecarlo`, :mod:`pcrb`,
 :mod:`tune` (differentiable threshold tuning), :mod:`studies`.
 """
 
@@ -19,6 +20,7 @@ from gmjax import filters as filters
 from gmjax import models as models
 from gmjax import montecarlo as montecarlo
 from gmjax import pcrb as pcrb
+from gmjax import scenarios as scenarios
 from gmjax import tune as tune
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
@@ -38,6 +40,7 @@ __all__ = [
     "models",
     "montecarlo",
     "pcrb",
+    "scenarios",
     "tune",
     "__version__",
 ]

@@ -18,7 +18,11 @@ import numpy as np
 from gmjax.filters import build_pf
 from gmjax.filters.base import Filter
 from gmjax.filters.gsf import build_gsf
-from gmjax.models import Scenario, seed000
+from gmjax.models import Scenario
+from gmjax.scenarios.bearings_only import bearings_only
+from gmjax.scenarios.gamma_system import gamma_system
+from gmjax.scenarios.glint_range_bearing import range_bearing
+from gmjax.scenarios.jump_system import jump_system
 from gmjax.montecarlo import MonteCarloResult, monte_carlo
 
 __all__ = ["Study", "STUDIES", "run_study", "format_table", "plot_study"]
@@ -77,7 +81,7 @@ def _seed000_table7() -> Study:
         name="jump",
         table="seed000-table7",
         title="seed 000 Table 7: scalar measurement-jump system (eqs 45-50), EKF-based GSFs vs a 300-particle PF",
-        scenario=seed000.jump_system,
+        scenario=jump_system,
         filters=filters,
         paper={
             "NL-GSF": {"armse": 8.3394, "aeise": 0.287, "cpu_s": 8.25},
@@ -90,7 +94,7 @@ def _seed000_table7() -> Study:
             f"N_u = {n_u} for every GSF (the paper gives none for this table); R-GSF merges to {n_u}. "
             "The PF (bootstrap SIR, systematic resampling every step) propagates with the true glint "
             "process noise and weights with the model's N(2, 3^2) measurement noise. The true glint "
-            "parameters are our choice (see gmjax.models.seed000.jump_system). 'aeise' is the mean EISE "
+            "parameters are our choice (see gmjax.scenarios.jump_system.jump_system). 'aeise' is the mean EISE "
             "that PCM's search minimised (seed 000 eqs 29-35); the paper does not define AEISE for NL/R-GSF, "
             "so for every GSF we also report 'mean ISE', the ISE between each step's updated mixture and "
             "its reduction. The paper's CPU times are MATLAB seconds for 15 runs; ours are per run."
@@ -108,7 +112,7 @@ def _seed000_table8() -> Study:
         name="range_bearing",
         table="seed000-table8",
         title="seed 000 Table 8: 4-D range-bearing CV target with glint measurement noise (eqs 51-53)",
-        scenario=seed000.range_bearing,
+        scenario=range_bearing,
         filters=filters,
         paper={
             "NL-GSF": {"armse": 112.3, "aeise": 0.327, "cpu_s": 0.06},
@@ -122,7 +126,7 @@ def _seed000_table8() -> Study:
             "position ARMSE in metres, the paper's unit (full-state ARMSE is in the JSON). The PF has 1000 "
             "particles (the paper does not give its count for this table) and weights with the model's "
             "4-component measurement mixture. Glint parameters are our choice "
-            "(see gmjax.models.seed000.range_bearing). Paper's run count for Table 8 is not stated."
+            "(see gmjax.scenarios.glint_range_bearing.range_bearing). Paper's run count for Table 8 is not stated."
         ),
     )
 
@@ -144,24 +148,24 @@ def _seed001_filters() -> dict[str, Callable[[Scenario], Filter]]:
 
 _SEED001_NOTES = (
     "GSUKF / GSCKF are the AGSSCKF engine without splitting (psi_th = inf). The paper's times are "
-    "MATLAB ms per step; ours are per run. Scenario readings in gmjax.models.seed001; the full "
-    "comparison (k <= 30 window, time ratios to the PF) is benchmarks/bench_seed001.py."
+    "MATLAB ms per step; ours are per run. Scenario readings in gmjax.scenarios.gamma_system and "
+    "gmjax.scenarios.bearings_only; the full comparison (k <= 30 window, time ratios to the PF) is "
+    "benchmarks/bench_seed001.py."
 )
 
 
 _SEED001_TABLES = {
-    # study name -> (table, title, scenario factory name, paper ARMSE per filter, extra note)
+    # study name -> (table, title, scenario factory, paper ARMSE per filter, extra note)
     "gamma": ("seed001-table2", "seed 001 Table 2: 1-D system with Gamma process noise (eqs 44-47)",
-              "gamma_system", (33.25, 30.12, 23.22, 18.86, 18.05, 16.32),
+              gamma_system, (33.25, 30.12, 23.22, 18.86, 18.05, 16.32),
               "The paper's ARMSE is over k <= 30; ours over all 60 steps. "),
     "bearings": ("seed001-table3", "seed 001 Table 3: bearings-only tracking with two sensors (eqs 48-52)",
-                 "bearings_only", (0.1532, 0.1530, 0.1203, 0.1056, 0.9234, 0.8021), ""),
+                 bearings_only, (0.1532, 0.1530, 0.1203, 0.1056, 0.9234, 0.8021), ""),
 }
 
 
 def _seed001(name: str) -> Study:
     """Seed 001 Tables 2-3: AGSSCKF and its peers on the Gamma system or the bearings-only target."""
-    from gmjax.models import seed001
 
     table, title, scenario, armse, note = _SEED001_TABLES[name]
     filters = _seed001_filters()
@@ -169,7 +173,7 @@ def _seed001(name: str) -> Study:
         name=name,
         table=table,
         title=f"{title}, AGSSCKF and peers",
-        scenario=getattr(seed001, scenario),
+        scenario=scenario,
         filters=filters,
         paper={n: {"armse": a} for n, a in zip(filters, armse)},
         paper_runs=100,
@@ -181,31 +185,31 @@ def _seed001(name: str) -> Study:
 def _seed003(motion: str) -> Study:
     """Seed 003 §4.2: IMM (CS + CT) whose model filters are Gaussian sum filters, four reducers."""
     from gmjax.filters.imm import build_imm_gsf
-    from gmjax.models import seed003
+    from gmjax.scenarios import manoeuvring_target
     from gmjax.reduction import GMRC, GMRCM, PruneTop, Runnalls
 
     K = 8  # components kept per model filter (the paper's preset number is not given)
 
     def imm(reducer):
-        return lambda sc: build_imm_gsf(seed003.imm_models(dtype=sc.model.prior.means.dtype),
-                                        seed003.TRANSITION, local="ekf", reducer=reducer, capacity=K)
+        return lambda sc: build_imm_gsf(manoeuvring_target.imm_models(dtype=sc.model.prior.means.dtype),
+                                        manoeuvring_target.TRANSITION, local="ekf", reducer=reducer, capacity=K)
 
-    paper = seed003.PAPER[motion]
+    paper = manoeuvring_target.PAPER[motion]
     return Study(
         name=f"seed003_{motion}",
         table=f"seed003-{motion}",
         title=f"seed 003 §4.2 ({motion}): IMM (CS + CT) with Gaussian-sum model filters, four reducers",
-        scenario=lambda: seed003.tracking(motion),
+        scenario=lambda: manoeuvring_target.tracking(motion),
         filters={
             "GMRC": imm(GMRC(num_out=K, capacity=K)),
             "Runnalls": imm(Runnalls(num_out=K, capacity=K)),
-            "GMRCM": imm(GMRCM(alpha=seed003.REGULARIZER, capacity=K, newton_steps=0)),
+            "GMRCM": imm(GMRCM(alpha=manoeuvring_target.REGULARIZER, capacity=K, newton_steps=0)),
             "GMRP": imm(PruneTop(num_out=K, capacity=K)),
         },
         paper={n: {"armse": paper["armse"][n], "cpu_s": paper["time_s"][n]} for n in paper["armse"]},
         paper_runs=100,
         notes=(f"K = {K} components per model filter; GMRCM searches lambda in [0.5, 3] on an 11-point grid "
-               "(no Newton steps); scenario reading in gmjax.models.seed003. The paper's times are MATLAB "
+               "(no Newton steps); scenario reading in gmjax.models.manoeuvring_target. The paper's times are MATLAB "
                "seconds per run."),
         eise_filters=("GMRCM",),
     )

@@ -32,7 +32,7 @@ from gmjax.filters.agsf import (  # noqa: E402
 from gmjax.filters.base import StepInfo, StepInputs  # noqa: E402
 from gmjax.mixture import GaussianMixture  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.models.seed001 import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
+from gmjax.scenarios.gamma_system import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
 from gmjax.split import split_count, split_gated, split_principal  # noqa: E402
 
 T_SHORT = 36  # covers the switch of eq 45 at k = 30

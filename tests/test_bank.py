@@ -14,12 +14,13 @@ import pytest
 from gmjax import filters
 from gmjax import mixture as gmm
 from gmjax.filters import StepInputs, bank
-from gmjax.models import ModelParams, seed004
+from gmjax.models import ModelParams
+from gmjax.scenarios import uwb_velocity
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from reference.bank_np import _dare, bank_filter_np  # noqa: E402
 
-DT = seed004.DT
+DT = uwb_velocity.DT
 F = np.array([[1.0, DT], [0.0, 1.0]])
 H = np.array([[1.0, 0.0]])
 G = np.array([[DT], [1.0]])
@@ -28,7 +29,7 @@ T = 25  # one horizon everywhere, so each method's kernel compiles once for the 
 
 
 def _model(process, measurement, dtype=jnp.float64):
-    return seed004.rwv_model(process, measurement, dtype=dtype)
+    return uwb_velocity.rwv_model(process, measurement, dtype=dtype)
 
 
 def _inputs(active):
@@ -44,7 +45,7 @@ def _params(filt, q, r):
 @functools.lru_cache(maxsize=None)
 def _runner(method: str, dtype=jnp.float64):
     """One compiled kernel per (method, shapes): the noise mixtures are traced arguments of params."""
-    base = _model(seed004.synthetic_noise(1, 1.0), seed004.synthetic_noise(1, 1.0), dtype)
+    base = _model(uwb_velocity.synthetic_noise(1, 1.0), uwb_velocity.synthetic_noise(1, 1.0), dtype)
     filt = bank.build_bank(base, method, noise_gain=jnp.asarray(G, dtype))
 
     @jax.jit
@@ -60,11 +61,11 @@ def _np_noise(gm):
 
 
 def _simulate(process, measurement, seed, n_steps):
-    return seed004.simulate_labeled(process, measurement, jax.random.key(seed), n_steps=n_steps)
+    return uwb_velocity.simulate_labeled(process, measurement, jax.random.key(seed), n_steps=n_steps)
 
 
 def test_each_method_matches_the_numpy_reference_on_model_3():
-    noise = seed004.synthetic_noise(3, 0.6)
+    noise = uwb_velocity.synthetic_noise(3, 0.6)
     model = _model(noise, noise)
     run = _simulate(noise, noise, 1, T)
     q, r = model.process_noise, model.measurement_noise
@@ -79,7 +80,7 @@ def test_each_method_matches_the_numpy_reference_on_model_3():
 @pytest.mark.slow
 @pytest.mark.parametrize("axis", ["x", "y"])
 def test_each_method_matches_the_numpy_reference_on_uwb(axis):
-    pn, mn = seed004.UWB_NOISES[axis]["process"], seed004.UWB_NOISES[axis]["measurement"]
+    pn, mn = uwb_velocity.UWB_NOISES[axis]["process"], uwb_velocity.UWB_NOISES[axis]["measurement"]
     model = _model(pn, mn)
     run = _simulate(pn, mn, 2, 40)
     q, r = model.process_noise, model.measurement_noise
@@ -92,7 +93,7 @@ def test_each_method_matches_the_numpy_reference_on_uwb(axis):
 
 
 def _one_component_check(q, r, zs, active, runner_for):
-    model = _model(seed004.ScalarGM((1.0,), (2.0,), (1.5,)), seed004.ScalarGM((1.0,), (-1.0,), (4.0,)))
+    model = _model(uwb_velocity.ScalarGM((1.0,), (2.0,), (1.5,)), uwb_velocity.ScalarGM((1.0,), (-1.0,), (4.0,)))
     kf_states, _ = jax.jit(lambda z: filters.run(filters.build_kf(model), z))(zs)
     for method in bank.BANK_METHODS:
         _, infos = runner_for(method)(q, r, zs, active)
@@ -104,7 +105,7 @@ def _one_component_check(q, r, zs, active, runner_for):
 
 def test_one_component_noises_every_method_equals_the_kalman_filter():
     """One live cluster per noise, stored in 5 padded slots (the shapes of Table I)."""
-    pn, mn = seed004.ScalarGM((1.0,), (2.0,), (1.5,)), seed004.ScalarGM((1.0,), (-1.0,), (4.0,))
+    pn, mn = uwb_velocity.ScalarGM((1.0,), (2.0,), (1.5,)), uwb_velocity.ScalarGM((1.0,), (-1.0,), (4.0,))
     model = _model(pn, mn)
     q, r = gmm.pad(model.process_noise, 5), gmm.pad(model.measurement_noise, 5)
     run = _simulate(pn, mn, 3, T)
@@ -113,7 +114,7 @@ def test_one_component_noises_every_method_equals_the_kalman_filter():
 
 @pytest.mark.slow
 def test_one_component_noises_unpadded_every_method_equals_the_kalman_filter():
-    pn, mn = seed004.ScalarGM((1.0,), (2.0,), (1.5,)), seed004.ScalarGM((1.0,), (-1.0,), (4.0,))
+    pn, mn = uwb_velocity.ScalarGM((1.0,), (2.0,), (1.5,)), uwb_velocity.ScalarGM((1.0,), (-1.0,), (4.0,))
     model = _model(pn, mn)
     run = _simulate(pn, mn, 4, 30)
     _one_component_check(model.process_noise, model.measurement_noise, run.zs, jnp.zeros((30, 2), jnp.int32),
@@ -122,7 +123,7 @@ def test_one_component_noises_unpadded_every_method_equals_the_kalman_filter():
 
 def test_red_pkg_equals_red_gsfm_when_all_clusters_share_one_variance():
     """§V-A: with equal cluster variances the preloaded gains are the sub-filters' gains."""
-    noise = seed004.synthetic_noise(2, 0.5)
+    noise = uwb_velocity.synthetic_noise(2, 0.5)
     model = _model(noise, noise)
     run = _simulate(noise, noise, 5, T)
     q, r = model.process_noise, model.measurement_noise
@@ -134,7 +135,7 @@ def test_red_pkg_equals_red_gsfm_when_all_clusters_share_one_variance():
 
 
 def test_padded_noise_slots_change_nothing():
-    noise = seed004.synthetic_noise(3, 0.4)
+    noise = uwb_velocity.synthetic_noise(3, 0.4)
     model = _model(noise, noise)
     run = _simulate(noise, noise, 6, T)
     q, r = model.process_noise, model.measurement_noise
@@ -152,7 +153,7 @@ def test_padded_noise_slots_change_nothing():
     "method", ["kf-mm", *(pytest.param(m, marks=pytest.mark.slow) for m in bank.BANK_METHODS if m != "kf-mm")]
 )
 def test_jit_equals_eager(method):
-    noise = seed004.synthetic_noise(1, 0.3)
+    noise = uwb_velocity.synthetic_noise(1, 0.3)
     model = _model(noise, noise)
     run = _simulate(noise, noise, 7, T)
     filt = bank.build_bank(model, method, noise_gain=G)
@@ -173,8 +174,8 @@ def test_jit_equals_eager(method):
 @functools.lru_cache(maxsize=None)
 def _simulate_batch():
     def sim(c, keys):
-        noise = seed004.synthetic_noise(1, c)
-        return jax.vmap(lambda k: seed004.simulate_labeled(noise, noise, k, n_steps=T))(keys)
+        noise = uwb_velocity.synthetic_noise(1, c)
+        return jax.vmap(lambda k: uwb_velocity.simulate_labeled(noise, noise, k, n_steps=T))(keys)
 
     return jax.jit(sim)
 
@@ -185,7 +186,7 @@ def test_matched_rmse_is_at_most_gsf_merge_over_a_sweep():
     keys = jax.random.split(jax.random.key(8), n_runs)
     for c in (0.1, 0.3, 1.0):
         runs = _simulate_batch()(c, keys)
-        noise = seed004.synthetic_noise(1, c)
+        noise = uwb_velocity.synthetic_noise(1, c)
         model = _model(noise, noise)
         q, r = model.process_noise, model.measurement_noise
         mse = {}
@@ -206,12 +207,12 @@ def test_sweep_vmap_over_points_and_runs_equals_a_loop():
     G64 = jnp.asarray(G)
 
     def make_model(c):
-        noise = seed004.synthetic_noise(1, c)
-        return seed004.rwv_model(noise, noise)
+        noise = uwb_velocity.synthetic_noise(1, c)
+        return uwb_velocity.rwv_model(noise, noise)
 
     def simulate(c, key):
-        noise = seed004.synthetic_noise(1, c)
-        return seed004.simulate_labeled(noise, noise, key, n_steps=T)
+        noise = uwb_velocity.synthetic_noise(1, c)
+        return uwb_velocity.simulate_labeled(noise, noise, key, n_steps=T)
 
     cs = jnp.asarray([0.2, 1.0])
     keys = jax.random.split(jax.random.key(10), 3)
@@ -230,7 +231,7 @@ def test_sweep_vmap_over_points_and_runs_equals_a_loop():
 
 @pytest.mark.parametrize("method", ["red-gsfm", pytest.param("gsf-merge", marks=pytest.mark.slow)])
 def test_float32_runs_and_agrees_with_float64(method):
-    noise = seed004.synthetic_noise(3, 0.2)
+    noise = uwb_velocity.synthetic_noise(3, 0.2)
     run = _simulate(noise, noise, 9, T)
     m64 = _model(noise, noise)
     m32 = _model(noise, noise, jnp.float32)
@@ -260,7 +261,7 @@ def test_steady_state_gains_match_scipy_dare_and_the_riccati_fixed_point():
 
 
 def test_missing_measurement_is_the_moment_matched_prediction():
-    noise = seed004.synthetic_noise(1, 0.5)
+    noise = uwb_velocity.synthetic_noise(1, 0.5)
     model = _model(noise, noise)
     q, r = model.process_noise, model.measurement_noise
     run = _simulate(noise, noise, 11, T)
@@ -278,7 +279,7 @@ def test_missing_measurement_is_the_moment_matched_prediction():
 
 
 def test_bad_arguments_raise_clear_errors():
-    noise = seed004.synthetic_noise(1, 0.5)
+    noise = uwb_velocity.synthetic_noise(1, 0.5)
     model = _model(noise, noise)
     with pytest.raises(ValueError, match="method"):
         bank.build_bank(model, "gsf-prune")
@@ -301,11 +302,11 @@ def test_bad_arguments_raise_clear_errors():
         filters.run(filt, jnp.zeros((5, 1)), StepInputs(t=jnp.arange(1, 6), aux=jnp.zeros((4, 2), jnp.int32)))
     with pytest.raises(ValueError, match="noise_gain"):
         jax.jit(lambda s: bank.build_bank(
-            _model(seed004.ScalarGM(jnp.ones(1), jnp.zeros(1), s * jnp.ones(1)), noise), "red-gsfm").params)(1.0)
+            _model(uwb_velocity.ScalarGM(jnp.ones(1), jnp.zeros(1), s * jnp.ones(1)), noise), "red-gsfm").params)(1.0)
 
 
 def test_auto_noise_gain_finds_the_noise_line():
-    noise = seed004.synthetic_noise(1, 0.5)
+    noise = uwb_velocity.synthetic_noise(1, 0.5)
     Gp = bank._resolve_noise_gain("auto", _model(noise, noise).process_noise)
     assert Gp.shape == (1, 2)
     np.testing.assert_allclose(np.abs(np.asarray(Gp)[0]), np.array([DT, 1.0]) / np.hypot(DT, 1.0), rtol=1e-9)
@@ -327,7 +328,7 @@ def _eq9_loglik_np(m, P, z, q, r):
 
 @pytest.mark.parametrize("method", ["gsf-merge", "red-gsfm", "kf-mm"])
 def test_step_info_loglik_is_the_eq9_normaliser_and_the_fixed_fields(method):
-    noise = seed004.synthetic_noise(3, 0.6)
+    noise = uwb_velocity.synthetic_noise(3, 0.6)
     model = _model(noise, noise)
     run = _simulate(noise, noise, 12, T)
     q, r = model.process_noise, model.measurement_noise
@@ -365,7 +366,7 @@ def _perturbed_total(filt, zs, active, objective):
     ("red-ssg", "initial"),  # through the steady-state gains computed from params in init
 ])
 def test_grad_wrt_a_process_noise_covariance_matches_central_differences(method, objective):
-    noise = seed004.synthetic_noise(3, 0.6)
+    noise = uwb_velocity.synthetic_noise(3, 0.6)
     model = _model(noise, noise)
     run = _simulate(noise, noise, 13, T)
     filt = bank.build_bank(model, method, noise_gain=G)
@@ -379,7 +380,7 @@ def test_grad_wrt_a_process_noise_covariance_matches_central_differences(method,
 
 
 def test_vmap_over_two_parameter_sets_equals_two_runs():
-    noise = seed004.synthetic_noise(2, 0.4)
+    noise = uwb_velocity.synthetic_noise(2, 0.4)
     model = _model(noise, noise)
     run = _simulate(noise, noise, 14, T)
     filt = bank.build_bank(model, "red-gsfr", noise_gain=G)

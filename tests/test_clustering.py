@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gmjax.mixture import GaussianMixture, pad
-from gmjax.reduction._clustering import (
+from gmjax.reduction.clustering import (
     centre_distances,
     combine_identical,
     gauss_cluster,

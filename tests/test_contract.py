@@ -128,31 +128,35 @@ def test_threshold_change_does_not_recompile():
 # Filters: one generic driver for every filter of the package.
 
 from gmjax import filters as F  # noqa: E402
-from gmjax.models import seed000, seed001, seed003, seed004, simulate  # noqa: E402
+from gmjax.models import simulate  # noqa: E402
+from gmjax.scenarios.jump_system import jump_system  # noqa: E402
+from gmjax.scenarios.gamma_system import gamma_system  # noqa: E402
+from gmjax.scenarios import manoeuvring_target  # noqa: E402
+from gmjax.scenarios import uwb_velocity  # noqa: E402
 
 N_STEPS = 8
 
 
 def _jump():
-    return seed000.jump_system()._replace(n_steps=N_STEPS)
+    return jump_system()._replace(n_steps=N_STEPS)
 
 
 def _linear():
-    return seed004.synthetic(1, 1.0)._replace(n_steps=N_STEPS)
+    return uwb_velocity.synthetic(1, 1.0)._replace(n_steps=N_STEPS)
 
 
 def _imm_filters(kind):
     def build(sc):
-        models = seed003.imm_models()
+        models = manoeuvring_target.imm_models()
         if kind == "imm":
-            return F.build_imm(models, seed003.TRANSITION, filter="kf")
-        return F.build_imm_gsf(models, seed003.TRANSITION, local="kf",
+            return F.build_imm(models, manoeuvring_target.TRANSITION, filter="kf")
+        return F.build_imm_gsf(models, manoeuvring_target.TRANSITION, local="kf",
                                reducer=reduction.Runnalls(num_out=4, capacity=4), capacity=4)
     return build
 
 
 def _imm_scenario():
-    return seed003.circular_motion()._replace(n_steps=N_STEPS)
+    return manoeuvring_target.circular_motion()._replace(n_steps=N_STEPS)
 
 
 # name -> (scenario factory, filter factory, whether d(loglik)/d(params) is smooth)
@@ -171,7 +175,7 @@ FILTERS = {
     "gsf_gmrcm": (_jump, lambda sc: F.build_gsf(sc.model, "ukf", reduction.GMRCM(capacity=6, newton_steps=0), capacity=6), True),
     "imm": (_imm_scenario, _imm_filters("imm"), True),
     "imm_gsf": (_imm_scenario, _imm_filters("imm_gsf"), True),
-    "agsf": (lambda: seed001.gamma_system()._replace(n_steps=N_STEPS), lambda sc: F.build_agsf(sc.model), True),
+    "agsf": (lambda: gamma_system()._replace(n_steps=N_STEPS), lambda sc: F.build_agsf(sc.model), True),
     "bank": (_linear, lambda sc: F.build_bank(sc.model, "red-gsfm"), True),
     "pf": (_jump, lambda sc: F.build_pf(sc.model, 64), False),
 }

@@ -19,7 +19,8 @@ from gmjax import GaussianMixture  # noqa: E402
 from gmjax import mixture as gmm  # noqa: E402
 from gmjax.filters import StepInputs, build_ekf, run  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
-from gmjax.models import StateSpaceModel, seed000, simulate  # noqa: E402
+from gmjax.models import StateSpaceModel, simulate  # noqa: E402
+from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 from gmjax.reduction import PruneTop  # noqa: E402
 
 
@@ -61,7 +62,7 @@ def test_linear_gsf_without_reduction_equals_enumerated_exact_posterior():
 
 
 def test_one_component_noises_capacity_one_equals_local_filter():
-    sc = seed000.jump_system()
+    sc = jump_system()
     one = lambda gm: GaussianMixture.create([1.0], gmm.mean(gm)[None], gmm.cov(gm)[None])  # noqa: E731
     model = sc.model._replace(process_noise=one(sc.model.process_noise), prior=one(sc.model.prior))
     _, zs, ts = simulate(sc._replace(n_steps=30), jax.random.key(3))
@@ -74,7 +75,7 @@ def test_one_component_noises_capacity_one_equals_local_filter():
 
 
 def test_matches_numpy_gsf_with_number_limited_pruning():
-    sc = seed000.jump_system()
+    sc = jump_system()
     _, zs, ts = simulate(sc._replace(n_steps=25), jax.random.key(7))
     K = 12
     filt = build_gsf(sc.model, "ekf", PruneTop(num_out=K), capacity=K)
@@ -116,7 +117,7 @@ def test_overflow_is_flagged_and_heaviest_kept():
 
 
 def test_jit_equals_eager_and_vmap_equals_loop():
-    sc = seed000.jump_system()._replace(n_steps=12)
+    sc = jump_system()._replace(n_steps=12)
     filt = build_gsf(sc.model, "ekf", PruneTop(num_out=8), capacity=8)
     zss = jnp.stack([simulate(sc, k)[1] for k in jax.random.split(jax.random.key(0), 2)])
     eager = [run(filt, z)[1].mean for z in zss]
@@ -126,8 +127,8 @@ def test_jit_equals_eager_and_vmap_equals_loop():
 
 
 def test_float32_runs_finite_and_close_to_float64():
-    sc64 = seed000.jump_system()._replace(n_steps=15)
-    sc32 = seed000.jump_system(dtype=jnp.float32)._replace(n_steps=15)
+    sc64 = jump_system()._replace(n_steps=15)
+    sc32 = jump_system(dtype=jnp.float32)._replace(n_steps=15)
     _, zs, _ = simulate(sc64, jax.random.key(11))
     out = {}
     for name, sc in (("64", sc64), ("32", sc32)):
@@ -155,11 +156,11 @@ def test_bad_arguments_raise():
 
 def test_stateful_reducer_state_is_carried_and_inherited():
     from gmjax.filters.gsf import inherit
-    from gmjax.reduction._gmrcm import GMRCM, GMRCMState
+    from gmjax.reduction.gmrcm import GMRCM, GMRCMState
 
     # children of slot i are i*n .. i*n+n-1, matching the (K, L) -> K*L flattening of predict/update
     np.testing.assert_array_equal(inherit(GMRCMState(jnp.array([3, 0, 1])), 2).low_count, [3, 3, 0, 0, 1, 1])
-    sc = seed000.jump_system()._replace(n_steps=6)
+    sc = jump_system()._replace(n_steps=6)
     K = 8
     filt = build_gsf(sc.model, "ekf", GMRCM(capacity=K, newton_steps=0), capacity=K)
     state0 = filt.init(filt.params)
@@ -199,7 +200,7 @@ def test_grad_of_loglik_wrt_noise_covariance_and_pruning_threshold_matches_finit
     """Parameters are data: d(sum loglik)/d(process-noise variance) and d/d(pruning threshold)."""
     from gmjax.reduction import PruneThreshold
 
-    sc = seed000.jump_system()._replace(n_steps=10)
+    sc = jump_system()._replace(n_steps=10)
     _, zs, ts = simulate(sc, jax.random.key(2))
     filt = build_gsf(sc.model, "ekf", PruneThreshold(threshold=0.05, capacity=8), capacity=8,
                      track_ise=False)

@@ -7,7 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax import mixture as gmm
-from gmjax.models import noise, seed000, seed001, seed004, simulate
+from gmjax.models import noise, simulate
+from gmjax.scenarios.glint_range_bearing import range_bearing
+from gmjax.scenarios.jump_system import jump_system
+from gmjax.scenarios.gamma_system import gamma_system
+from gmjax.scenarios import uwb_velocity
 
 
 def test_glint_moments_within_standard_error():
@@ -21,7 +25,7 @@ def test_glint_moments_within_standard_error():
 
 
 def test_jump_system_process_noise_matches_eq50_first_two_moments():
-    sc = seed000.jump_system()
+    sc = jump_system()
     q_mean, q_cov = gmm.moments(sc.model.process_noise)
     n = 100_000
     draws = np.asarray(jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(1), n)))[:, 0]
@@ -31,7 +35,7 @@ def test_jump_system_process_noise_matches_eq50_first_two_moments():
 
 
 def test_jump_system_time_index_convention():
-    sc = seed000.jump_system()
+    sc = jump_system()
     x = jnp.array([2.0])
     # eq 48: z = x^2/20 + v for t = k+1 <= 80, z = 3x - 4 + v afterwards
     np.testing.assert_allclose(sc.model.h(x, 80), [0.2])
@@ -44,7 +48,7 @@ def test_jump_system_time_index_convention():
 
 
 def test_simulate_is_reproducible_and_noise_is_additive():
-    sc = seed000.jump_system()._replace(n_steps=5)
+    sc = jump_system()._replace(n_steps=5)
     a = simulate(sc, jax.random.key(3))
     b = simulate(sc, jax.random.key(3))
     for x, y in zip(a, b):
@@ -52,7 +56,7 @@ def test_simulate_is_reproducible_and_noise_is_additive():
 
 
 def test_range_bearing_truth_accelerates_in_y():
-    sc = seed000.range_bearing()
+    sc = range_bearing()
     xs, zs, _ = simulate(sc, jax.random.key(4))
     assert xs.shape == (1001, 4) and zs.shape == (1000, 2)
     # v_y grows by 70 m/s^2 * 10 s = 700 m/s, up to the tiny process noise
@@ -71,7 +75,7 @@ def _moments_within_se(draws, mean, cov, n_se=5):
 
 
 def test_seed001_gamma_system():
-    sc = seed001.gamma_system()
+    sc = gamma_system()
     n = 100_000
     draws = np.asarray(jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(5), n)))
     _moments_within_se(draws, np.array([6.0]), np.array([[12.0]]))  # Ga(shape 3, scale 2)
@@ -83,7 +87,7 @@ def test_seed001_gamma_system():
 
 
 def test_seed004_noises_match_the_mixtures_the_filters_assume():
-    sc = seed004.synthetic(3, 0.1)
+    sc = uwb_velocity.synthetic(3, 0.1)
     np.testing.assert_allclose(sc.model.measurement_noise.means[:, 0], 0.1 * np.array([-50, 10, 30, 50, 80]))
     n = 100_000
     keys = jax.random.split(jax.random.key(7), n)
@@ -91,19 +95,19 @@ def test_seed004_noises_match_the_mixtures_the_filters_assume():
     q_mean, q_cov = (np.asarray(a) for a in gmm.moments(sc.model.process_noise))
     _moments_within_se(v, q_mean, q_cov - 1e-9 * np.eye(2))
     # the process noise lies on the line spanned by (dt, 1) (eq 20)
-    np.testing.assert_allclose(v[:, 0], seed004.DT * v[:, 1], rtol=1e-12)
+    np.testing.assert_allclose(v[:, 0], uwb_velocity.DT * v[:, 1], rtol=1e-12)
     w = np.asarray(jax.vmap(lambda k: sc.sample_measurement_noise(k, 1))(keys))
     r_mean, r_cov = (np.asarray(a) for a in gmm.moments(sc.model.measurement_noise))
     _moments_within_se(w, r_mean, r_cov)
 
 
 def test_seed004_uwb_tables_and_bad_arguments():
-    sc = seed004.uwb("y")
+    sc = uwb_velocity.uwb("y")
     assert int(gmm.n_active(sc.model.process_noise)) == 9
     assert int(gmm.n_active(sc.model.measurement_noise)) == 2
     import pytest
 
     with pytest.raises(ValueError, match="axis"):
-        seed004.uwb("z")
+        uwb_velocity.uwb("z")
     with pytest.raises(ValueError, match="model"):
-        seed004.synthetic(4, 1.0)
+        uwb_velocity.synthetic(4, 1.0)

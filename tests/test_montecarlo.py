@@ -14,12 +14,12 @@ import pytest
 from gmjax import montecarlo
 from gmjax.filters import build_ekf
 from gmjax.filters.gsf import build_gsf
-from gmjax.models import seed000
+from gmjax.scenarios.jump_system import jump_system
 from gmjax.reduction import PruneTop
 
 
 def small_study(n_steps=10):
-    sc = seed000.jump_system()._replace(n_steps=n_steps)
+    sc = jump_system()._replace(n_steps=n_steps)
     return sc, build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)
 
 
@@ -43,9 +43,9 @@ def test_same_numbers_on_four_forced_host_devices(tmp_path):
         assert len(jax.devices()) == 4, jax.devices()
         from gmjax import montecarlo
         from gmjax.filters.gsf import build_gsf
-        from gmjax.models import seed000
+        from gmjax.scenarios.jump_system import jump_system
         from gmjax.reduction import PruneTop
-        sc = seed000.jump_system()._replace(n_steps=10)
+        sc = jump_system()._replace(n_steps=10)
         filt = build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)
         r = montecarlo.monte_carlo(filt, sc, 6, jax.random.key(5), chunk_size=4, progress=False)
         np.savez(r"{tmp_path / 'out.npz'}", sq=r.scores.sq_error, nees=r.scores.nees, n=r.scores.n_components)
@@ -80,7 +80,7 @@ def test_summary_matches_numpy_aggregation():
 def test_armse_stderr_matches_spread_of_independent_studies():
     # the delta-method standard error should describe the spread of ARMSE over independent studies:
     # one compiled study of 8 x 40 runs, summarised as 8 separate studies of 40 runs
-    sc = seed000.jump_system()._replace(n_steps=10)
+    sc = jump_system()._replace(n_steps=10)
     big = montecarlo.monte_carlo(build_ekf(sc.model), sc, 320, jax.random.key(100), progress=False)
     armses, ses = [], []
     for g in range(8):
@@ -96,7 +96,7 @@ def test_armse_stderr_matches_spread_of_independent_studies():
 def test_single_gaussian_and_particle_filters_run_through_the_same_runner():
     from gmjax.filters import build_pf
 
-    sc = seed000.jump_system()._replace(n_steps=8)
+    sc = jump_system()._replace(n_steps=8)
     for filt in (build_ekf(sc.model), build_pf(sc.model, 50)):
         r = montecarlo.monte_carlo(filt, sc, 3, jax.random.key(2), progress=False)
         assert r.rmse.shape == (8,)

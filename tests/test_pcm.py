@@ -10,8 +10,8 @@ import pytest
 from scipy.stats import multivariate_normal, norm
 
 from gmjax.mixture import GaussianMixture, moments, pad
-from gmjax.reduction._clustering import gauss_cluster
-from gmjax.reduction._eise import (
+from gmjax.reduction.clustering import gauss_cluster
+from gmjax.reduction.eise import (
     cluster_ise,
     hard_eise,
     merge_membership,
@@ -19,9 +19,9 @@ from gmjax.reduction._eise import (
     relaxed_eise,
     search_confidence,
 )
-from gmjax.reduction._gmrcm import GMRCM, GMRCMState, gmrcm, init_state
-from gmjax.reduction._merge import merge_labels
-from gmjax.reduction._pcm import PCM, pcm
+from gmjax.reduction.gmrcm import GMRCM, GMRCMState, gmrcm, init_state
+from gmjax.reduction.merge import merge_labels
+from gmjax.reduction.pcm import PCM, pcm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from reference import pcm_numpy as ref  # noqa: E402

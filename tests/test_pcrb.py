@@ -14,7 +14,8 @@ from scipy.stats import norm
 
 from gmjax import mixture
 from gmjax.mixture import GaussianMixture
-from gmjax.models.pcrb_scenarios import linear_system, ungm, ungm_gmm_setup, ungm_transition
+from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup, ungm_transition
+from gmjax.scenarios.linear_system import linear_system
 from gmjax.pcrb import (
     GMMPCRBConfig,
     PCRBModel,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from gmjax.models import pcrb_scenarios as ps
-from gmjax.models.pcrb_scenarios import (
+from gmjax.scenarios import satellite_pass
+from gmjax.scenarios.satellite_pass import (
     elements_to_rv,
     kepler_propagate,
     radar_measurement,
@@ -20,18 +20,18 @@ from gmjax.pcrb import build_pcrb_gmm, pcrb_mc
 from gmjax.quadrature import smolyak
 from gmjax.split import split_axis, uniform_library
 
-X0 = np.asarray(ps.SATELLITE_STATE)
+X0 = np.asarray(satellite_pass.SATELLITE_STATE)
 
 
 def _two_body(t, y):
     r = y[:3]
-    return np.concatenate([y[3:], -ps.MU_EARTH * r / np.linalg.norm(r) ** 3])
+    return np.concatenate([y[3:], -satellite_pass.MU_EARTH * r / np.linalg.norm(r) ** 3])
 
 
 def test_table_ii_state_has_table_iii_elements():
     el = np.asarray(jax.jit(rv_to_elements)(jnp.asarray(X0)))
     a, e, inc, raan, argp, M = el
-    ta, te, ti, traan, targp, tnu = ps.SATELLITE_ELEMENTS
+    ta, te, ti, traan, targp, tnu = satellite_pass.SATELLITE_ELEMENTS
     assert a == pytest.approx(ta, abs=2e-3)
     assert e == pytest.approx(te, abs=1e-6)
     assert math.degrees(inc) == pytest.approx(ti, abs=1e-5)
@@ -68,11 +68,11 @@ def test_kepler_state_transition_matrix_matches_finite_differences():
 
 
 def test_geodetic_site_and_radar_geometry():
-    np.testing.assert_allclose(ps.geodetic_to_ecef(0.0, 0.0, 0.0), [ps.WGS84_A, 0, 0], atol=1e-9)
-    np.testing.assert_allclose(ps.geodetic_to_ecef(90.0, 0.0, 0.0)[2], 6356.752314245, atol=1e-6)
-    site = ps.geodetic_to_ecef(*ps.RADAR_SITE)
+    np.testing.assert_allclose(satellite_pass.geodetic_to_ecef(0.0, 0.0, 0.0), [satellite_pass.WGS84_A, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(satellite_pass.geodetic_to_ecef(90.0, 0.0, 0.0)[2], 6356.752314245, atol=1e-6)
+    site = satellite_pass.geodetic_to_ecef(*satellite_pass.RADAR_SITE)
     # a point straight above the site (at t = 0, theta0 = 0) has elevation 90 deg
-    up = ps._enu_matrix(ps.RADAR_SITE[0], ps.RADAR_SITE[1])[2]
+    up = satellite_pass._enu_matrix(satellite_pass.RADAR_SITE[0], satellite_pass.RADAR_SITE[1])[2]
     x = jnp.asarray(np.concatenate([site + 500.0 * up, np.zeros(3)]))
     z = np.asarray(radar_measurement(x, 0.0, 0.0))
     assert z[0] == pytest.approx(500.0, rel=1e-12)

@@ -154,7 +154,7 @@ def test_cowa_weights_match_numpy():
     """COWA's constrained QP (jitted active set) equals the NumPy active set and SciPy SLSQP."""
     from scipy.optimize import minimize
 
-    from gmjax.reduction._ise_greedy import optimal_weights
+    from gmjax.reduction.cowa import optimal_weights
 
     rng = np.random.default_rng(4)
     for trial in range(10):

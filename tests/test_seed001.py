@@ -10,7 +10,7 @@ from scipy.linalg import expm
 
 from gmjax import mixture as gmm
 from gmjax.models import simulate
-from gmjax.models.seed001 import (
+from gmjax.scenarios.bearings_only import (
     BEARINGS_PROCESS_NOISE,
     BEARINGS_SENSORS,
     bearings_only,

@@ -24,7 +24,8 @@ from gmjax.filters.base import StepInputs
 from gmjax.filters.gsf import build_gsf
 from gmjax.filters.imm import IMMGSFParams, build_imm_gsf
 from gmjax.mixture import GaussianMixture as GM
-from gmjax.models import StateSpaceModel, seed003, simulate
+from gmjax.models import StateSpaceModel, simulate
+from gmjax.scenarios import manoeuvring_target
 from gmjax.reduction import GMRCM, PruneTop, Runnalls
 
 # ---------------------------------------------------------------------------------------------
@@ -33,7 +34,7 @@ from gmjax.reduction import GMRCM, PruneTop, Runnalls
 
 def test_cs_transition_is_constant_acceleration():
     for alpha, dt in ((0.01, 1.0), (0.3, 0.5)):
-        Fcs = seed003.cs_transition(alpha, dt)
+        Fcs = manoeuvring_target.cs_transition(alpha, dt)
         ca = np.array([[1, dt, dt**2 / 2], [0, 1, dt], [0, 0, 1]])
         np.testing.assert_allclose(Fcs, ca, rtol=0, atol=1e-9)
 
@@ -41,18 +42,18 @@ def test_cs_transition_is_constant_acceleration():
 def test_ct_transition_matches_expm_and_the_circle():
     w, dt = 0.02 * np.pi, 1.0
     A = np.array([[0, 1, 0], [0, 0, 1], [0, -(w**2), 0]])
-    np.testing.assert_allclose(seed003.ct_transition(w, dt), scipy.linalg.expm(A * dt), atol=1e-12)
+    np.testing.assert_allclose(manoeuvring_target.ct_transition(w, dt), scipy.linalg.expm(A * dt), atol=1e-12)
     # one axis of a uniform circular motion: x = c + R cos(w t + phi)
     c, R, phi = 300.0, 2500.0, 0.3
     t = np.arange(0, 201)
     traj = np.stack([c + R * np.cos(w * t + phi), -R * w * np.sin(w * t + phi),
                      -R * w**2 * np.cos(w * t + phi)], 1)
-    Fct = seed003.ct_transition(w, dt)
+    Fct = manoeuvring_target.ct_transition(w, dt)
     np.testing.assert_allclose(traj[1:], traj[:-1] @ Fct.T, rtol=1e-10, atol=1e-8)
 
 
 def test_scenario_shapes_and_step_maneuver_timing():
-    sc = seed003.tracking("step")
+    sc = manoeuvring_target.tracking("step")
     assert sc.n_steps == 200 and sc.position_dims == (0,)
     xs, zs, ts = simulate(sc, jax.random.key(1))
     assert xs.shape == (201, 3) and zs.shape == (200, 3) and ts.shape == (200,)
@@ -66,10 +67,10 @@ def test_scenario_shapes_and_step_maneuver_timing():
 
 
 def test_circular_truth_is_the_ct_motion():
-    sc = seed003.tracking("circular")
+    sc = manoeuvring_target.tracking("circular")
     xs, _, _ = simulate(sc, jax.random.key(2))
     xs = np.asarray(xs)
-    Fct = seed003.ct_transition()
+    Fct = manoeuvring_target.ct_transition()
     expected = [xs[0]]
     for _ in range(200):
         expected.append(Fct @ expected[-1])
@@ -81,7 +82,7 @@ def test_circular_truth_is_the_ct_motion():
 
 
 def test_simulated_noise_and_prior_match_the_stated_mixtures():
-    sc = seed003.tracking("circular", truth_process_noise=True)
+    sc = manoeuvring_target.tracking("circular", truth_process_noise=True)
     n = 4000
     keys = jax.random.split(jax.random.key(3), n)
     v = np.asarray(jax.vmap(lambda k: sc.sample_measurement_noise(k, 1))(keys))
@@ -102,17 +103,17 @@ def test_simulated_noise_and_prior_match_the_stated_mixtures():
     cdf = lambda x: 0.5 * scipy.stats.norm.cdf(x, 10, 10) + 0.5 * scipy.stats.norm.cdf(x, -10, 10)  # noqa: E731
     assert scipy.stats.kstest(v[:, 0], cdf).pvalue > 1e-3
     # process noise off by default
-    sc0 = seed003.tracking("circular")
+    sc0 = manoeuvring_target.tracking("circular")
     assert np.all(np.asarray(sc0.sample_process_noise(keys[0], 1)) == 0)
 
 
 def test_scenario_bad_input():
     with pytest.raises(ValueError, match="motion"):
-        seed003.tracking("zigzag")
+        manoeuvring_target.tracking("zigzag")
     with pytest.raises(ValueError, match="alpha"):
-        seed003.cs_transition(0.0)
+        manoeuvring_target.cs_transition(0.0)
     with pytest.raises(ValueError, match="omega"):
-        seed003.ct_transition(-1.0)
+        manoeuvring_target.ct_transition(-1.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -198,8 +199,8 @@ def test_imm_gsf_equals_exact_jump_markov_posterior_and_ignores_padding():
     GMRCM(alpha=0.3, capacity=4, grid_size=5, newton_steps=0),
 ], ids=["gmrp", "runnalls", "gmrcm-stateful"])
 def test_one_model_imm_gsf_is_the_gsf(reducer):
-    sc = seed003.tracking("step")
-    model = seed003.imm_models()[0]
+    sc = manoeuvring_target.tracking("step")
+    model = manoeuvring_target.imm_models()[0]
     _, zs, _ = simulate(sc._replace(n_steps=12), jax.random.key(5))
     imm = build_imm_gsf([model], [[1.0]], reducer=reducer, capacity=4)
     gsf = build_gsf(model, "ekf", reducer, capacity=4, track_ise=False)
@@ -232,12 +233,12 @@ def test_imm_gsf_with_gaussian_noises_and_no_switching_is_the_imm():
 
 
 def _seed003_filter(dtype=jnp.float64, capacity=4):
-    return build_imm_gsf(seed003.imm_models(dtype=dtype), seed003.TRANSITION,
+    return build_imm_gsf(manoeuvring_target.imm_models(dtype=dtype), manoeuvring_target.TRANSITION,
                          reducer=PruneTop(num_out=capacity, capacity=capacity), capacity=capacity)
 
 
 def test_imm_gsf_jit_eager_vmap_loop_float32_and_missing_measurement():
-    sc = seed003.tracking("circular")._replace(n_steps=4)
+    sc = manoeuvring_target.tracking("circular")._replace(n_steps=4)
     keys = jax.random.split(jax.random.key(7), 3)
     zs = jnp.stack([simulate(sc, k)[1] for k in keys])
     zs = zs.at[:, 1].set(jnp.nan)  # a predict-only step
@@ -297,9 +298,9 @@ def test_imm_gsf_grad_wrt_process_noise_matches_finite_difference():
 
 @pytest.mark.slow
 def test_imm_gsf_jit_equals_eager_with_a_stateful_reducer_and_a_key():
-    sc = seed003.tracking("step")._replace(n_steps=3)
+    sc = manoeuvring_target.tracking("step")._replace(n_steps=3)
     _, zs, ts = simulate(sc, jax.random.key(11))
-    gm_filt = build_imm_gsf(seed003.imm_models(), seed003.TRANSITION, local="ekf",
+    gm_filt = build_imm_gsf(manoeuvring_target.imm_models(), manoeuvring_target.TRANSITION, local="ekf",
                             reducer=GMRCM(alpha=0.3, capacity=4, grid_size=5, newton_steps=0), capacity=4)
     key = jax.random.key(4)
     _, jitted = jax.jit(lambda z, k: F.run(gm_filt, z, ts, key=k))(zs, key)
@@ -320,17 +321,17 @@ def test_imm_gsf_jit_equals_eager_with_a_stateful_reducer_and_a_key():
 
 
 def test_imm_gsf_bad_input():
-    models = seed003.imm_models()
+    models = manoeuvring_target.imm_models()
     with pytest.raises(ValueError, match="transition"):
         build_imm_gsf(models, np.eye(3))
     with pytest.raises(ValueError, match="transition"):
         build_imm_gsf(models, [[0.5, 0.6], [0.5, 0.5]])
     with pytest.raises(ValueError, match="initial_probs"):
-        build_imm_gsf(models, seed003.TRANSITION, initial_probs=[1.0, 1.0])
+        build_imm_gsf(models, manoeuvring_target.TRANSITION, initial_probs=[1.0, 1.0])
     with pytest.raises(ValueError, match="capacity"):
-        build_imm_gsf(models, seed003.TRANSITION, capacity=0)
+        build_imm_gsf(models, manoeuvring_target.TRANSITION, capacity=0)
     with pytest.raises(ValueError, match="models"):
         build_imm_gsf([], np.zeros((0, 0)))
     two_q = GM.create([0.5, 0.5], [np.zeros(3), np.ones(3)], [np.eye(3), np.eye(3)])
     with pytest.raises(ValueError, match="models: all models must have the same numbers"):
-        build_imm_gsf([models[0], models[1]._replace(process_noise=two_q)], seed003.TRANSITION)
+        build_imm_gsf([models[0], models[1]._replace(process_noise=two_q)], manoeuvring_target.TRANSITION)

@@ -12,12 +12,12 @@ import pytest
 from scipy import integrate, stats
 
 from gmjax import mixture as gmm
-from gmjax.models import seed004
+from gmjax.scenarios import uwb_velocity
 
 
 def _scaled(model, c):
-    b = seed004.SYNTHETIC_MODELS[model]
-    return seed004.ScalarGM(b.weights, tuple(c * m for m in b.means), b.variances)
+    b = uwb_velocity.SYNTHETIC_MODELS[model]
+    return uwb_velocity.ScalarGM(b.weights, tuple(c * m for m in b.means), b.variances)
 
 
 def _kl_scipy(gm):
@@ -35,61 +35,61 @@ def _kl_scipy(gm):
 
 @pytest.mark.parametrize("gm", [
     _scaled(1, 0.21), _scaled(2, 1.0), _scaled(3, 0.096), _scaled(3, 3.0),
-    seed004.UWB_NOISES["x"]["process"], seed004.UWB_NOISES["y"]["measurement"],
+    uwb_velocity.UWB_NOISES["x"]["process"], uwb_velocity.UWB_NOISES["y"]["measurement"],
 ])
 def test_quadrature_kl_matches_scipy_adaptive_quadrature(gm):
-    np.testing.assert_allclose(seed004.kl_to_moment_matched(gm), _kl_scipy(gm), rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(uwb_velocity.kl_to_moment_matched(gm), _kl_scipy(gm), rtol=1e-7, atol=1e-9)
 
 
 def test_kl_is_zero_for_one_gaussian_and_mc_agrees_with_quadrature_within_its_standard_error():
-    assert abs(seed004.kl_to_moment_matched(_scaled(1, 0.0))) < 1e-10
-    for i, gm in enumerate([_scaled(1, 0.5), _scaled(3, 0.2), seed004.UWB_NOISES["y"]["process"]]):
-        kl_q = seed004.kl_to_moment_matched(gm)
-        kl_mc, se = seed004.kl_to_moment_matched(gm, method="mc", key=jax.random.key(i), return_stderr=True)
+    assert abs(uwb_velocity.kl_to_moment_matched(_scaled(1, 0.0))) < 1e-10
+    for i, gm in enumerate([_scaled(1, 0.5), _scaled(3, 0.2), uwb_velocity.UWB_NOISES["y"]["process"]]):
+        kl_q = uwb_velocity.kl_to_moment_matched(gm)
+        kl_mc, se = uwb_velocity.kl_to_moment_matched(gm, method="mc", key=jax.random.key(i), return_stderr=True)
         assert se > 0 and abs(kl_mc - kl_q) < 4 * se, (kl_mc, kl_q, se)
 
 
 def test_kl_accepts_a_1d_gaussian_mixture():
     gm = _scaled(2, 0.4)
     mix = gmm.GaussianMixture.create(gm.weights, np.array(gm.means)[:, None], np.array(gm.variances)[:, None, None])
-    assert seed004.kl_to_moment_matched(mix) == pytest.approx(seed004.kl_to_moment_matched(gm), rel=1e-12)
+    assert uwb_velocity.kl_to_moment_matched(mix) == pytest.approx(uwb_velocity.kl_to_moment_matched(gm), rel=1e-12)
 
 
 def test_paper_fig5_scales_give_kl_about_one_half():
     """Fig. 5: c = 0.21, 0.215, 0.096 give "an approximate KL divergence of 0.5" (c has 2-3 digits)."""
     for model, c in [(1, 0.21), (2, 0.215), (3, 0.096)]:
-        assert abs(seed004.kl_curve(model, [c])[0] - 0.5) < 0.05
+        assert abs(uwb_velocity.kl_curve(model, [c])[0] - 0.5) < 0.05
 
 
 def test_c_for_kl_inverts_the_quadrature_kl():
     for model in (1, 2, 3):
         for kl in (0.0, 0.3, 1.5, 4.0):
-            c = seed004.c_for_kl(model, kl)
-            assert seed004.kl_curve(model, [c])[0] == pytest.approx(kl, abs=1e-8)
-    assert seed004.c_for_kl(1, 0.5) < seed004.c_for_kl(1, 1.0)
+            c = uwb_velocity.c_for_kl(model, kl)
+            assert uwb_velocity.kl_curve(model, [c])[0] == pytest.approx(kl, abs=1e-8)
+    assert uwb_velocity.c_for_kl(1, 0.5) < uwb_velocity.c_for_kl(1, 1.0)
 
 
 def test_bad_kl_arguments():
     with pytest.raises(ValueError, match="method"):
-        seed004.kl_to_moment_matched(_scaled(1, 1.0), method="simpson")
+        uwb_velocity.kl_to_moment_matched(_scaled(1, 1.0), method="simpson")
     with pytest.raises(ValueError, match="key"):
-        seed004.kl_to_moment_matched(_scaled(1, 1.0), method="mc")
+        uwb_velocity.kl_to_moment_matched(_scaled(1, 1.0), method="mc")
     with pytest.raises(ValueError, match="variances"):
-        seed004.kl_to_moment_matched(seed004.ScalarGM((1.0,), (0.0,), (0.0,)))
+        uwb_velocity.kl_to_moment_matched(uwb_velocity.ScalarGM((1.0,), (0.0,), (0.0,)))
     with pytest.raises(ValueError, match="gm"):
-        seed004.kl_to_moment_matched([1.0, 2.0])
+        uwb_velocity.kl_to_moment_matched([1.0, 2.0])
     with pytest.raises(ValueError, match="kl"):
-        seed004.c_for_kl(1, -1.0)
+        uwb_velocity.c_for_kl(1, -1.0)
     with pytest.raises(ValueError, match="kl"):
-        seed004.c_for_kl(1, 50.0)
+        uwb_velocity.c_for_kl(1, 50.0)
     with pytest.raises(ValueError, match="model"):
-        seed004.c_for_kl(4, 1.0)
+        uwb_velocity.c_for_kl(4, 1.0)
 
 
 def test_rwv_model_equals_the_validated_scenario_model():
     gm = _scaled(3, 0.7)
-    a = seed004.synthetic(3, 0.7).model
-    b = seed004.rwv_model(gm, gm)
+    a = uwb_velocity.synthetic(3, 0.7).model
+    b = uwb_velocity.rwv_model(gm, gm)
     for x, y in [(a.process_noise, b.process_noise), (a.measurement_noise, b.measurement_noise), (a.prior, b.prior)]:
         for u, v in zip(x, y):
             np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-12, atol=1e-15)
@@ -99,14 +99,14 @@ def test_rwv_model_equals_the_validated_scenario_model():
 
 
 def test_labelled_simulator_draws_each_noise_from_its_labelled_cluster():
-    gm = seed004.UWB_NOISES["x"]["process"], seed004.UWB_NOISES["x"]["measurement"]
+    gm = uwb_velocity.UWB_NOISES["x"]["process"], uwb_velocity.UWB_NOISES["x"]["measurement"]
     n_runs, T = 400, 50
-    runs = jax.jit(jax.vmap(lambda k: seed004.simulate_labeled(*gm, k, n_steps=T)))(
+    runs = jax.jit(jax.vmap(lambda k: uwb_velocity.simulate_labeled(*gm, k, n_steps=T)))(
         jax.random.split(jax.random.key(3), n_runs))
     xs, zs, act = (np.asarray(a) for a in runs)
-    Fm = np.array([[1.0, seed004.DT], [0.0, 1.0]])
+    Fm = np.array([[1.0, uwb_velocity.DT], [0.0, 1.0]])
     v = xs[:, 1:] - xs[:, :-1] @ Fm.T  # (N, T, 2)
-    np.testing.assert_allclose(v[..., 0], seed004.DT * v[..., 1], rtol=1e-9, atol=1e-9)  # eq 20
+    np.testing.assert_allclose(v[..., 0], uwb_velocity.DT * v[..., 1], rtol=1e-9, atol=1e-9)  # eq 20
     w = zs[..., 0] - xs[:, 1:, 0]
     n = n_runs * T
     for draws, labels, table in ((v[..., 1], act[..., 0], gm[0]), (w, act[..., 1], gm[1])):
@@ -120,8 +120,8 @@ def test_labelled_simulator_draws_each_noise_from_its_labelled_cluster():
 
 
 def test_synthetic_noise_traces_in_c():
-    means = jax.jit(lambda c: seed004.synthetic_noise(2, c).means)(2.0)
+    means = jax.jit(lambda c: uwb_velocity.synthetic_noise(2, c).means)(2.0)
     np.testing.assert_allclose(np.asarray(means), 2.0 * np.array([-50, -30, 0, 30, 50]))
     with pytest.raises(ValueError, match="model"):
-        seed004.synthetic_noise(0, 1.0)
-    np.testing.assert_allclose(np.asarray(seed004.noise_gain())[:, 0], [seed004.DT, 1.0])
+        uwb_velocity.synthetic_noise(0, 1.0)
+    np.testing.assert_allclose(np.asarray(uwb_velocity.noise_gain())[:, 0], [uwb_velocity.DT, 1.0])

@@ -13,7 +13,8 @@ from gmjax import tune as T
 from gmjax.filters import build_kf
 from gmjax.filters.gsf import build_gsf
 from gmjax.mixture import GaussianMixture, pad
-from gmjax.models import Scenario, StateSpaceModel, seed000
+from gmjax.models import Scenario, StateSpaceModel
+from gmjax.scenarios.jump_system import jump_system
 from gmjax.reduction import PCM, PruneCensored, PruneThreshold, pcm, prune_censored, prune_threshold
 from gmjax.reduction import relax as R
 
@@ -410,7 +411,7 @@ def _pcm_gsf(sc, p, mode="soft"):
 
 def test_pcm_gsf_study_gradient_matches_finite_differences():
     """The whole Monte Carlo loss of the relaxed PCM-GSF is differentiable in (ρ, λ)."""
-    sc = seed000.jump_system(n_steps=8)
+    sc = jump_system(n_steps=8)
     loss = T.weighted_loss((1.0, T.armse_loss()), (0.01, T.count_loss()), (10.0, T.aeise_loss()))
 
     @jax.jit
@@ -425,7 +426,7 @@ def test_pcm_gsf_study_gradient_matches_finite_differences():
 
 @pytest.mark.slow
 def test_pcm_gsf_reverse_mode_equals_forward_mode():
-    sc = seed000.jump_system(n_steps=8)
+    sc = jump_system(n_steps=8)
 
     def f(theta):
         return T.armse_loss()(T.study_scores(_pcm_gsf(sc, {"rho": theta[0], "lam": theta[1]}), sc, 3,
@@ -438,7 +439,7 @@ def test_pcm_gsf_reverse_mode_equals_forward_mode():
 @pytest.mark.slow
 def test_pcm_gsf_hard_mode_equals_pcm_gsf():
     """At zero temperature the relaxed PCM-GSF is the PCM-GSF with a fixed λ, run for run."""
-    sc = seed000.jump_system(n_steps=10)
+    sc = jump_system(n_steps=10)
     soft = build_gsf(sc.model, "ekf", PCM(rho=0.95, lam=2.0, max_components=8, capacity=8, gate_temperature=0.0,
                                           temperature=0.0, grid_size=9, mode="soft"), capacity=8, track_ise=False)
     hard = build_gsf(sc.model, "ekf", PCM(rho=0.95, lam=2.0, max_components=8, capacity=8), capacity=8,
@@ -454,7 +455,7 @@ def test_pcm_gsf_hard_mode_equals_pcm_gsf():
 
 def _pruned_gsf(n_steps=8):
     """A GSF whose reducer is the relaxed censored pruning; ρ is a leaf of ``filter.params``."""
-    sc = seed000.jump_system(n_steps=n_steps)
+    sc = jump_system(n_steps=n_steps)
     red = PruneCensored(0.9, 8, temperature=0.03, mode="soft")
     return sc, build_gsf(sc.model, "ekf", red, capacity=8, track_ise=False)
 

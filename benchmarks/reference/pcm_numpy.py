@@ -1,7 +1,7 @@
 """Plain NumPy/Python reference for prune-cluster-merge (seed 000) and cluster-merge (seed 003).
 
 Written straight from the papers with Python sets and loops, one mixture at a time: the baseline a
-user would otherwise write, and the independent check of ``gmjax.reduction._clustering``, ``_eise``,
+user would otherwise write, and the independent check of ``gmjax.reduction.clustering``, ``_eise``,
 ``_pcm`` and ``_gmrcm``. The readings of the ambiguous steps are the ones documented in
 ``gmjax/reduction/_clustering.py`` (Mahalanobis confidence ellipsoid, lexicographic pair order,
 subset kept whole, ties of eq 28 to the lower-indexed cluster).

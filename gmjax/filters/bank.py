@@ -65,7 +65,7 @@ Readings where the paper is not explicit (each also stated where it is implement
 * **Matched** (§III-A): it keeps the cluster of the model that generated the data. The true
   ``(i, j)`` is passed per step in ``inputs.aux`` (``(2,)`` int): run it with
   ``gmjax.filters.run(filt, zs, StepInputs(t=ts, aux=active))``, ``active`` ``(T, 2)`` from
-  :func:`gmjax.models.seed004.simulate_labeled`. Without it the matched filter raises
+  :func:`gmjax.scenarios.uwb_velocity.simulate_labeled`. Without it the matched filter raises
   ``ValueError``.
 * **Log-likelihood** (``StepInfo.loglik``): the log of the normaliser of eq 9 for the bank's own
   Kalman sub-filters, ``log sum_ij w^i p^j N(z_k; ẑ^{ij}, S^{ij})`` from ``(x̂_{k-1}, P_{k-1})``,
@@ -358,7 +358,7 @@ def _matched_pair(aux: Any) -> Array:
         raise ValueError(
             "inputs.aux: the 'matched' filter needs the true active cluster pair (i, j) of every "
             "step: gmjax.filters.run(filt, zs, StepInputs(t=ts, aux=active)) with active a (T, 2) "
-            "int array (gmjax.models.seed004.simulate_labeled returns it)"
+            "int array (gmjax.scenarios.uwb_velocity.simulate_labeled returns it)"
         )
     if jnp.shape(aux) != (2,):
         raise ValueError(
@@ -625,9 +625,9 @@ def sweep_errors(
     Args:
         method: one of :data:`BANK_METHODS`.
         make_model: ``p -> StateSpaceModel`` (traceable in ``p``), e.g. from
-            :func:`gmjax.models.seed004.rwv_model`.
+            :func:`gmjax.scenarios.uwb_velocity.rwv_model`.
         simulate: ``(p, key) -> run`` with fields ``xs (T+1, d)``, ``zs (T, m)``, ``active (T, 2)``
-            (:class:`gmjax.models.seed004.LabeledRun`).
+            (:class:`gmjax.scenarios.uwb_velocity.LabeledRun`).
         params: a pytree whose leaves have a leading axis ``P``.
         keys: ``(N,)`` PRNG keys.
         noise_gain: passed to :func:`build_bank` (must be explicit or ``None`` under the trace).

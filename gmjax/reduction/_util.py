@@ -120,6 +120,19 @@ def validate_nonneg(value: Any, name: str, *, allow_inf: bool = True) -> None:
         raise ValueError(f"{name}: must be finite, got {value!r}")
 
 
+def validate_count_threshold(
+    gm: GaussianMixture, num_out: Any, threshold: Any, capacity: Any
+) -> tuple[int, jax.Array, int]:
+    """Validate the arguments of a count-and-threshold reducer (Runnalls, Salmond, West, Williams,
+    COWA): ``(num_out, threshold as an array of the mixture's dtype (None -> inf), capacity)``."""
+    validate_mixture(gm)
+    num_out = validate_count(num_out, "num_out", 1, gm.capacity)
+    cap = validate_capacity(capacity, gm, minimum=num_out)
+    validate_nonneg(threshold, "threshold")
+    threshold = jnp.asarray(jnp.inf if threshold is None else threshold, gm.weights.dtype)
+    return num_out, threshold, cap
+
+
 def validate_range(value: Any, name: str, low: float, high: float) -> None:
     """``ValueError`` when a concrete value lies outside ``[low, high]``."""
     if value is None or not is_concrete(value):

@@ -13,7 +13,7 @@ primitives they share:
   every weight by its gate and renormalises the survivors (with 0/1 gates: the hard pruning).
 * :func:`soft_membership` — soft similarity memberships ``A(λ) = Σ_g π_g(λ) A_g`` over a fixed grid
   of ``λ``, the relaxation PCM's Newton search already uses
-  (:func:`gmjax.reduction._eise.relaxed_membership`).
+  (:func:`gmjax.reduction.eise.relaxed_membership`).
 * :func:`soft_split_gate` — the soft split trigger for :class:`gmjax.filters.agsf.AGSFConfig`
   (``split_gate=``): a ``(ψ, ψ_th) -> gate`` function whose gate scales the split displacement.
 
@@ -33,9 +33,9 @@ import jax.numpy as jnp
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
-from gmjax.reduction._clustering import centre_distances, gauss_cluster, similarity_thresholds
-from gmjax.reduction._eise import onehot_membership, relaxed_membership
+from gmjax.reduction.base import ReductionInfo, make_info
+from gmjax.reduction.clustering import centre_distances, gauss_cluster, similarity_thresholds
+from gmjax.reduction.eise import onehot_membership, relaxed_membership
 
 __all__ = [
     "MODES",
@@ -245,7 +245,7 @@ def soft_membership(gm: GaussianMixture, lam: ArrayLike, grid: Array, temperatur
     """Soft similarity memberships at ``λ``, shared with PCM's confidence search.
 
     The hard clustering (seed 000 eqs 23–28, :func:`gmjax.reduction.gauss_cluster`) is piecewise
-    constant in ``λ``. As in PCM's Newton search (:mod:`gmjax.reduction._eise`), the relaxation is the
+    constant in ``λ``. As in PCM's Newton search (:mod:`gmjax.reduction.eise`), the relaxation is the
     kernel-smoothed clustering over a *fixed* grid ``λ_1 < … < λ_G``:
     ``A(λ) = Σ_g π_g(λ) A_g`` with ``π(λ) = softmax(-(λ - λ_g)² / 2T²)`` and ``A_g`` the one-hot
     clustering at ``λ_g``; it is smooth in ``λ`` for ``T > 0``. At ``T = 0`` the membership is the hard

@@ -12,8 +12,8 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.reduction._util import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, Stateless, make_info
-from gmjax.reduction._merge import merge_labels
+from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.merge import merge_labels
 
 __all__ = ["brute_force", "BruteForce", "set_partitions", "MAX_PARTITIONS"]
 

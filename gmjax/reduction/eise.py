@@ -11,7 +11,7 @@ Each integral is ``J_hh - 2 J_hr + J_rr`` (eq 31) in closed form through
 ``∫ N(u_1, P_1) N(u_2, P_2) = N(u_1; u_2, P_1 + P_2)`` (eqs 34–35).
 
 **Why a relaxation.** The hard clustering changes only where ``λ`` crosses one of the finitely many
-similarity thresholds ``δ_ij`` (see :mod:`gmjax.reduction._clustering`), so the hard EISE is
+similarity thresholds ``δ_ij`` (see :mod:`gmjax.reduction.clustering`), so the hard EISE is
 *piecewise constant* in ``λ``: its derivative is 0 almost everywhere and undefined at the jumps, and
 the Newton–Raphson iteration of seed 000 (Table 1 step 7, "the classic Newton–Raphson method") has
 nothing to work with. We therefore run Newton on a smooth relaxation with *soft memberships*:
@@ -43,7 +43,7 @@ from gmjax import gaussian
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._clustering import (
+from gmjax.reduction.clustering import (
     ClusterResult,
     centre_distances,
     gauss_cluster,
@@ -383,7 +383,7 @@ def search_confidence(
             radius.
         tol: Newton stops when ``|Δλ| < tol`` or the relative change of the relaxed EISE is below.
         alpha, method, regularizer, ise_scale: see :func:`eise` / :func:`merge_membership`.
-        dims, triangular, subset_rule, range_scale: see :func:`gmjax.reduction._clustering.gauss_cluster`.
+        dims, triangular, subset_rule, range_scale: see :func:`gmjax.reduction.clustering.gauss_cluster`.
     """
     _check_options(method, regularizer)
     if grid_size < 2:

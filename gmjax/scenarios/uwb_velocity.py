@@ -1,4 +1,5 @@
-"""Scenarios of seed 004 (Pishdad & Labeau, *A New Reduction Scheme for Gaussian Sum Filters*), §V."""
+"""Random-walk velocity models with GM measurement noise: the synthetic Models 1-3 and the UWB ranging noise
+of Pishdad & Labeau (active-cluster reduction; seed 004 §V, Tables I-II)."""
 
 from __future__ import annotations
 

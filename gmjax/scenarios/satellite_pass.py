@@ -1,9 +1,7 @@
-"""The PCRB scenarios of seed 002 §V: the linear system, the 1-D benchmark and their settings.
-
-Every scenario returns a :class:`gmjax.pcrb.PCRBModel` (additive Gaussian noises, the paper's time
-convention ``x_{n+1} = f(x_n, n) + w_n``, ``z_{n+1} = h(x_{n+1}, n+1) + v_{n+1}``), and, where the
-paper fixes them, the GMM-PCRB settings it used.
+"""A satellite tracked by a ground radar over one pass, Zhang et al. (PCRB from Gaussian mixtures;
+seed 002 §V-C, eqs 78-87, Tables I-III).
 """
+
 
 from __future__ import annotations
 
@@ -14,17 +12,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmjax._types import Array, ArrayLike
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, from_gaussian
 from gmjax.pcrb import GMMPCRBConfig, PCRBModel
-from gmjax.split import SplitLibrary, gauss_hermite_library, split_repeated
 
 __all__ = [
-    "linear_system",
-    "ungm_transition",
-    "ungm",
-    "UNGMSetup",
-    "ungm_gmm_setup",
     "kepler_propagate",
     "rv_to_elements",
     "elements_to_rv",
@@ -33,134 +25,6 @@ __all__ = [
     "satellite",
 ]
 
-
-def linear_system(
-    F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, m0: ArrayLike, P0: ArrayLike, *, dtype=None
-) -> PCRBModel:
-    """The linear Gaussian model of seed 002 §V-A (eqs 74-75), time-invariant.
-
-    ``x_{n+1} = F x_n + w_n``, ``z_{n+1} = H x_{n+1} + v_{n+1}``, ``x_0 ~ N(m0, P0)``. Jacobians are
-    the constant matrices.
-    """
-    dtype = jnp.zeros(()).dtype if dtype is None else dtype
-    F = jnp.asarray(F, dtype)
-    H = jnp.asarray(H, dtype)
-    d = F.shape[-1]
-    if F.shape != (d, d):
-        raise ValueError(f"F: expected a square matrix, got shape {F.shape}")
-    if H.ndim != 2 or H.shape[1] != d:
-        raise ValueError(f"H: expected shape (m, {d}), got {H.shape}")
-    return PCRBModel(
-        f=lambda x, n: F @ x,
-        h=lambda x, n: H @ x,
-        Q=jnp.asarray(Q, dtype),
-        R=jnp.asarray(R, dtype),
-        prior=from_gaussian(jnp.asarray(m0, dtype), jnp.asarray(P0, dtype)),
-        f_jacobian=lambda x, n: F,
-        h_jacobian=lambda x, n: H,
-    )
-
-
-def ungm_transition(x: Array, n: Array) -> Array:
-    """Eq 79 without noise: ``x/2 + 25 x / (1 + x^2) + 8 cos(1.2 n)``.
-
-    Time-index convention: ``n`` is the index of the *input* state ``x_n``, so
-    ``x_1 = f(x_0, 0) + w_0`` uses ``cos(0) = 1`` and ``x_{n+1} = f(x_n, n) + w_n`` uses
-    ``cos(1.2 n)`` exactly as eq 79 is printed.
-    """
-    n = jnp.asarray(n, x.dtype)
-    return x / 2.0 + 25.0 * x / (1.0 + x * x) + 8.0 * jnp.cos(1.2 * n)
-
-
-def _ungm_jacobian(x: Array, n: Array) -> Array:
-    x2 = x * x
-    return (0.5 + 25.0 * (1.0 - x2) / (1.0 + x2) ** 2)[:, None]
-
-
-def ungm(
-    *, q: float = 10.0, r: float = 1.0, prior_mean: float = 0.0, prior_var: float = 1.0, dtype=None
-) -> PCRBModel:
-    """The 1-D benchmark of seed 002 §V-B (eqs 79-82), with the paper's defaults.
-
-    ``x_{n+1} = x_n / 2 + 25 x_n / (1 + x_n^2) + 8 cos(1.2 n) + w_n`` (eq 79),
-    ``z_{n+1} = x_{n+1}^2 / 20 + v_{n+1}`` (eq 80), ``x_0 ~ N(0, 1)`` (eq 81),
-    ``sigma_w^2 = 10``, ``sigma_v^2 = 1`` (eq 82).
-
-    Time-index convention of eq 79: ``cos(1.2 n)`` with ``n`` the index of ``x_n``, the state the
-    transition is applied to (see :func:`ungm_transition`). The cosine does not enter the
-    Jacobian but shifts ``p(x_n)``, hence the bound.
-    """
-    dtype = jnp.zeros(()).dtype if dtype is None else dtype
-    return PCRBModel(
-        f=ungm_transition,
-        h=lambda x, n: x * x / 20.0,
-        Q=jnp.full((1, 1), q, dtype),
-        R=jnp.full((1, 1), r, dtype),
-        prior=from_gaussian(jnp.full((1,), prior_mean, dtype), jnp.full((1, 1), prior_var, dtype)),
-        f_jacobian=_ungm_jacobian,
-        h_jacobian=lambda x, n: (x / 10.0)[None, :],
-    )
-
-
-class UNGMSetup(NamedTuple):
-    """The GMM-PCRB settings of seed 002 §V-B.
-
-    Attributes:
-        prior_gm: ``p(x_0)`` split four times by the ``sigma = 1/2, M = 8`` library (4096 terms;
-            :func:`gmjax.pcrb.pcrb_gmm` merges it to ``K`` with k-means).
-        config: Algorithm 2 every step (``mode="large"``), state refined by ``sigma = 1/40,
-            M = 16``, noise split by ``sigma = 1/2, M = 8``, linear propagator, threshold 1.
-        prior_library, state_library, noise_library: the three Gauss-Hermite libraries.
-    """
-
-    prior_gm: GaussianMixture
-    config: GMMPCRBConfig
-    prior_library: SplitLibrary
-    state_library: SplitLibrary
-    noise_library: SplitLibrary
-
-
-def ungm_gmm_setup(
-    model: PCRBModel | None = None,
-    num_components: int = 64,
-    *,
-    mode: str = "large",
-    kmeans_max_iter: int = 100,
-    prior_splits: int = 4,
-) -> UNGMSetup:
-    """Build the §V-B configuration: "the first splitting library" (Gauss-Hermite) throughout.
-
-    ``p(x_0)`` is split ``prior_splits`` (4) times by ``sigma = 1/2, M = 8`` (4096 components) and
-    merged to ``K``; each step refines the state by ``sigma = 1/40, M = 16`` (``16 K`` terms), the
-    process noise by ``sigma = 1/2, M = 8``, propagates the ``128 K`` pairs linearly and merges them
-    to ``K`` (8192 -> 64 for ``K = 64``). The paper's switch threshold for this model is 1; with
-    ``mode="large"`` (the default, as in the paper's runs) Algorithm 2 runs every step.
-
-    Accuracy claims (Figs 4-5: at most 1 % for K = 64, 1.5 % for K = 32) are read on the minimum
-    RMSE ``sqrt(PCRB)``, the quantity the paper plots in Fig 3 and defines its relative errors on in
-    §V-C; ``benchmarks/bench_pcrb.py`` reports that and the relative error of ``J_n^{-1}`` itself.
-    """
-    model = ungm() if model is None else model
-    prior_lib = gauss_hermite_library(8, 0.5)
-    state_lib = gauss_hermite_library(16, 1.0 / 40.0)
-    noise_lib = gauss_hermite_library(8, 0.5)
-    prior_gm = split_repeated(model.prior, prior_lib, [0] * int(prior_splits))
-    config = GMMPCRBConfig(
-        num_components=int(num_components),
-        mode=mode,
-        propagator="linear",
-        threshold=1.0,
-        state_library=state_lib,
-        noise_library=noise_lib,
-        state_directions=(0,),
-        noise_directions=(0,),
-        kmeans_max_iter=int(kmeans_max_iter),
-    )
-    return UNGMSetup(prior_gm, config, prior_lib, state_lib, noise_lib)
-
-
-# ------------------------------------------------------------------------------------------------
-# Satellite tracking (seed 002 §V-C)
 # ------------------------------------------------------------------------------------------------
 
 MU_EARTH = 398600.4418  # km^3 / s^2

@@ -14,7 +14,7 @@ Per call (one filter step):
   passed through unmerged.
 * **Steps 5–7**: the confidence range ``λ`` in ``[0.5, 3]`` (§4.1) minimising the EISE
   ``Σ_c ∫ (f_c - q_c)² + α lg N'`` (eq 10; grid + Newton on the relaxation,
-  :mod:`gmjax.reduction._eise`), the upper-triangular judgment matrix (eqs 4–6) and the
+  :mod:`gmjax.reduction.eise`), the upper-triangular judgment matrix (eqs 4–6) and the
   re-assignment of shared components (eqs 7–9; the subset case by seed 003's H2, "absorb").
 * **Step 8**: moment-preserving merge of every cluster (eqs 16–18).
 
@@ -38,11 +38,11 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, make_info
-from gmjax.reduction._clustering import gauss_cluster
-from gmjax.reduction._eise import hard_eise, search_confidence
-from gmjax.reduction._merge import merge_labels
-from gmjax.reduction._pcm import fixed_result, search_aux, validate_search_args
+from gmjax.reduction.base import ReductionInfo, make_info
+from gmjax.reduction.clustering import gauss_cluster
+from gmjax.reduction.eise import hard_eise, search_confidence
+from gmjax.reduction.merge import merge_labels
+from gmjax.reduction.pcm import fixed_result, search_aux, validate_search_args
 
 __all__ = ["GMRCMState", "gmrcm", "GMRCM", "init_state"]
 
@@ -90,9 +90,9 @@ def gmrcm(
         alpha: regularisation constant of eq 10 (§4.2: 0.3).
         lam: a fixed ``λ``; ``None`` searches it over ``lambda_range`` (§4.1: ``[0.5, 3]``).
         grid_size, newton_steps, temperature, tol: the search (see
-            :func:`gmjax.reduction._eise.search_confidence`).
+            :func:`gmjax.reduction.eise.search_confidence`).
         range_scale: the confidence scope is ``range_scale · λσ`` (see
-            :mod:`gmjax.reduction._clustering`).
+            :mod:`gmjax.reduction.clustering`).
         weight_threshold: the low-weight threshold (§2.3: 0.01), compared with the weights as given.
         low_steps: static number of consecutive low steps that drops a component (2).
         large_factor: covariance-trace factor of step 4(1) (1.5); ``inf`` disables the rule.
@@ -103,7 +103,7 @@ def gmrcm(
     Returns:
         ``(reduced, new_state, info)``; ``new_state`` is aligned with the output slots (see the
         module docstring), ``info.cost`` is the EISE, ``info.aux`` holds the search entries of
-        :func:`gmjax.reduction._pcm.pcm` plus ``n_dropped`` (low-weight rule) and ``n_passed``
+        :func:`gmjax.reduction.pcm.pcm` plus ``n_dropped`` (low-weight rule) and ``n_passed``
         (large-covariance rule).
 
     Raises:

@@ -1,13 +1,13 @@
 """Prune-cluster-merge mixture reduction, PCM-GMR (seed 000, Table 1 steps 2–7).
 
 1. *Weight-censored pruning* by the j-th order statistic (eqs 19–22, ``ρ = 0.9544``, cap ``N_u``)
-   with the survivors' weights reset by eq 41 (:func:`gmjax.reduction._prune.prune_censored`).
+   with the survivors' weights reset by eq 41 (:func:`gmjax.reduction.prune.prune_censored`).
 2. *Gauss clustering* by the distribution-similarity criterion at confidence range ``σ* = λσ``
-   (eqs 23–28, :mod:`gmjax.reduction._clustering`).
+   (eqs 23–28, :mod:`gmjax.reduction.clustering`).
 3. *Covariance-intersection merging* of every cluster with the normalised weights (eqs 38–39, 41).
 4. *Confidence-range search*: ``λ`` minimising the EISE ``½ Σ_c ∫ (f_c - q_c)² + α e^{N'/N}``
    (eqs 29–35) over the scope ``[1, 3]`` (§IV-A), by a grid and Newton–Raphson steps on a smooth
-   relaxation (:mod:`gmjax.reduction._eise`; the hard EISE is piecewise constant in ``λ``, so Newton
+   relaxation (:mod:`gmjax.reduction.eise`; the hard EISE is piecewise constant in ``λ``, so Newton
    needs the relaxation), falling back to the grid's best.
 
 Everything is a fixed-capacity array program: ``jit``, ``vmap`` over mixtures, and ``lax.scan`` in a
@@ -43,9 +43,9 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, Stateless, make_info
-from gmjax.reduction._clustering import gauss_cluster
-from gmjax.reduction._eise import (
+from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.clustering import gauss_cluster
+from gmjax.reduction.eise import (
     SearchResult,
     eise,
     hard_eise,
@@ -53,8 +53,8 @@ from gmjax.reduction._eise import (
     onehot_membership,
     search_confidence,
 )
-from gmjax.reduction._merge import merge_labels
-from gmjax.reduction._prune import prune_censored
+from gmjax.reduction.merge import merge_labels
+from gmjax.reduction.prune import prune_censored
 from gmjax.reduction.relax import (
     censored_gates,
     gated_prune,
@@ -179,7 +179,7 @@ def pcm(
             the soft memberships at ``lam`` in the relaxed modes (``>= 0``; 0 is hard).
         tol: Newton's stopping tolerance on ``|Δλ|`` and on the relative EISE change.
         range_scale: the confidence scope is ``range_scale · λσ`` (see
-            :mod:`gmjax.reduction._clustering`; 0.5 reproduces the papers' cluster counts).
+            :mod:`gmjax.reduction.clustering`; 0.5 reproduces the papers' cluster counts).
         dims: static state dimensions to cluster on (seed 000 §IV-D: position only); merging and
             the EISE use the full state.
         merge: ``"ci"`` (eqs 38–39, the paper) or ``"moment"``.
@@ -302,7 +302,7 @@ def _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, lambda_ra
 
     The pruning uses :func:`censored_gates` (``T_ρ``) and the clustering :func:`soft_membership`
     over the grid of ``grid_size`` points on ``lambda_range`` (``τ``); each cluster is merged with
-    the fractional memberships (:func:`gmjax.reduction._eise.merge_membership`, eqs 38–39 with
+    the fractional memberships (:func:`gmjax.reduction.eise.merge_membership`, eqs 38–39 with
     weights ``A_mc w_m``), and the cost is the EISE of eq 29 on the soft clusters (the relaxation
     PCM's search minimises). With ``τ = 0`` the clustering, merge and cost are exactly the hard
     ones at ``λ``; with ``T_ρ = 0`` too the output equals ``pcm(gm, rho=ρ, lam=λ)``.

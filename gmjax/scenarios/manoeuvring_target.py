@@ -1,4 +1,5 @@
-"""Seed 003 §4.2: tracking with a GM initial state and GM measurement noise (circular motion, step manoeuvre).
+"""A manoeuvring target (circular motion, step manoeuvre) with a GM initial state and GM measurement noise,
+tracked by an IMM of CS and CT models: Xu et al. 2019 (GMRCM; seed 003 §4.2).
 
 The paper (Xu, Fang, Wu, Zhang, J. NUDT 2019, in Chinese) gives, for §4.2:
 

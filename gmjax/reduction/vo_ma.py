@@ -11,9 +11,9 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, Stateless, make_info
-from gmjax.reduction._merge import merge_labels
-from gmjax.reduction._prune import _keep
+from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.merge import merge_labels
+from gmjax.reduction.prune import _keep
 
 __all__ = ["vo_ma", "VoMa"]
 

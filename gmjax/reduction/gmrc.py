@@ -11,9 +11,9 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, Stateless, make_info
-from gmjax.reduction._greedy import _runnalls
-from gmjax.reduction._merge import merge_labels
+from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.runnalls import _runnalls
+from gmjax.reduction.merge import merge_labels
 
 __all__ = ["gmrc", "GMRC", "kl_upper_bound"]
 

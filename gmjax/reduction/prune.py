@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 from gmjax.reduction.relax import (
     censored_gates,
     gated_prune,

@@ -14,7 +14,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.reduction._util import ise
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction._base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 
 __all__ = ["ise_refine", "Refined"]
 
