@@ -26,6 +26,8 @@ _LOG_2PI = 1.8378770664093453
 __all__ = [
     "GaussianMixture",
     "check",
+    "check_points",
+    "check_same_dim",
     "sanitize",
     "log_weights",
     "logpdf",
@@ -305,9 +307,43 @@ def log_weights(gm: GaussianMixture) -> Weights:
     return jnp.where(live, jnp.log(jnp.where(live, gm.weights, 1.0)), -jnp.inf)
 
 
-def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
-    """``log N(x; m_k, P_k)`` for every slot: ``(K,)`` for ``x`` of shape ``(d,)``, ``(n, K)`` for ``(n, d)``."""
+def check_points(gm: GaussianMixture, x: ArrayLike, name: str = "x") -> Array:
+    """``x`` as one point ``(d,)`` or ``n`` points ``(n, d)`` of ``gm``'s dimension (static check).
+
+    For a 1-D mixture a vector ``(n,)`` with ``n > 1`` is refused as ambiguous (``n`` points or
+    one point of the wrong dimension?): pass ``x[:, None]`` for ``n`` points.
+
+    Raises:
+        ValueError: naming ``name``, when the shape is neither ``(d,)`` nor ``(n, d)``.
+    """
     x = jnp.asarray(x)
+    d = gm.dim
+    if x.ndim not in (1, 2) or x.shape[-1] != d:
+        hint = f"; for {x.shape[0]} points of a 1-D mixture pass shape ({x.shape[0]}, 1)" if (
+            d == 1 and x.ndim == 1) else ""
+        raise ValueError(
+            f"{name}: expected one point ({d},) or points (n, {d}) of the {d}-D mixture, got shape "
+            f"{x.shape}{hint}"
+        )
+    return x
+
+
+def check_same_dim(a: GaussianMixture, b: GaussianMixture, names: tuple[str, str] = ("a", "b")) -> None:
+    """Raise ``ValueError`` naming both arguments when two mixtures live in different dimensions."""
+    if a.dim != b.dim:
+        raise ValueError(
+            f"{names[0]}, {names[1]}: mixtures of different dimensions ({names[0]} is {a.dim}-D, "
+            f"{names[1]} is {b.dim}-D)"
+        )
+
+
+def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
+    """``log N(x; m_k, P_k)`` for every slot: ``(K,)`` for ``x`` of shape ``(d,)``, ``(n, K)`` for ``(n, d)``.
+
+    Raises:
+        ValueError: ``x`` of another shape (see :func:`check_points`).
+    """
+    x = check_points(gm, x)
     factors = jax.vmap(lambda P: gaussian.safe_cholesky(P).factor)(gm.covs)  # once per component
     half_logdet = jnp.sum(jnp.log(jnp.diagonal(factors, axis1=-2, axis2=-1)), axis=-1)
     d = gm.dim
@@ -320,12 +356,16 @@ def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
 
 
 def logpdf(gm: GaussianMixture, x: ArrayLike) -> Array:
-    """Mixture log-density (weights used as stored): ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``."""
+    """Mixture log-density (weights used as stored): ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``.
+
+    For a 1-D mixture ``x`` of shape ``(n,)``, ``n > 1``, is refused (pass ``(n, 1)``); any other
+    shape raises ``ValueError`` naming ``x``.
+    """
     return logsumexp(component_logpdfs(gm, x) + log_weights(gm), axis=-1)
 
 
 def pdf(gm: GaussianMixture, x: ArrayLike) -> Array:
-    """Mixture density: ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``."""
+    """Mixture density: ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)`` (shapes as :func:`logpdf`)."""
     return jnp.exp(logpdf(gm, x))
 
 
@@ -397,26 +437,56 @@ def sample(gm: GaussianMixture, key: PRNGKey, n: int) -> Array:
 
 
 def marginal(gm: GaussianMixture, dims: Sequence[int]) -> GaussianMixture:
-    """Marginal mixture over the state dimensions ``dims`` (static)."""
-    dims = jnp.asarray(dims)
+    """Marginal mixture over the state dimensions ``dims`` (static, distinct, in ``[-d, d)``).
+
+    Raises:
+        ValueError: naming ``dims``: empty, out of range, repeated or not integers.
+    """
+    d = gm.dim
+    try:
+        idx = np.asarray(dims)
+    except Exception:  # a traced array: dims must be static
+        raise ValueError("dims: must be static integers (a list or tuple), not a traced array") from None
+    idx = idx.reshape(-1) if idx.ndim == 0 else idx
+    if idx.ndim != 1 or idx.size == 0 or not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"dims: expected a non-empty sequence of integers, got {dims!r}")
+    if np.any((idx < -d) | (idx >= d)):
+        raise ValueError(f"dims: {list(idx.tolist())} out of range for a {d}-D mixture (valid: 0..{d - 1})")
+    if np.unique(idx % d).size != idx.size:
+        raise ValueError(f"dims: repeated dimension in {list(idx.tolist())} (the covariance would be singular)")
+    dims = jnp.asarray(idx % d)
     return GaussianMixture(gm.weights, gm.means[:, dims], gm.covs[:, dims][:, :, dims], gm.mask)
 
 
 def affine(gm: GaussianMixture, A: ArrayLike, b: ArrayLike | None = None) -> GaussianMixture:
     """Distribution of ``A x + b`` for ``x ~ gm``: means ``A m_k + b``, covariances ``A P_k A^T``.
 
-    ``A`` is ``(e, d)``; ``A`` must have full row rank for the result to be a proper mixture.
+    ``A`` is ``(e, d)``, ``b`` is ``(e,)``; ``A`` must have full row rank for the result to be a proper
+    mixture.
+
+    Raises:
+        ValueError: ``A`` not ``(e, d)`` or ``b`` not ``(e,)``, naming the argument.
     """
     A = jnp.asarray(A)
+    if A.ndim != 2 or A.shape[1] != gm.dim:
+        raise ValueError(f"A: expected shape (e, {gm.dim}) for a {gm.dim}-D mixture, got {A.shape}")
     means = gm.means @ A.T
     if b is not None:
-        means = means + jnp.asarray(b)
+        b = jnp.asarray(b)
+        if b.shape != (A.shape[0],):
+            raise ValueError(f"b: expected shape ({A.shape[0]},) to match A {A.shape}, got {b.shape}")
+        means = means + b
     covs = gaussian.symmetrize(jnp.einsum("ij,kjl,ml->kim", A, gm.covs, A))
     return sanitize(GaussianMixture(gm.weights, means, covs, gm.mask))
 
 
 def concat(a: GaussianMixture, b: GaussianMixture) -> GaussianMixture:
-    """Slots of ``a`` then slots of ``b`` (capacity ``K_a + K_b``); weights kept as they are."""
+    """Slots of ``a`` then slots of ``b`` (capacity ``K_a + K_b``); weights kept as they are.
+
+    Raises:
+        ValueError: mixtures of different dimensions.
+    """
+    check_same_dim(a, b)
     return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 

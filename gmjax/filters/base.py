@@ -154,11 +154,41 @@ def step_inputs(n_steps: int, inputs: Any = None) -> StepInputs:
     return inputs
 
 
-def check_measurements(zs: Array) -> Array:
-    """``zs`` as an array of shape ``(T, m)``."""
+def measurement_dim(params: Any) -> int | None:
+    """The measurement dimension ``m`` a filter's ``params`` imply, or ``None`` when they do not say.
+
+    Read from the first model-level parameter set in the pytree (anything with a
+    ``measurement_noise`` mixture: :class:`~gmjax.models.ModelParams`, also inside the IMM's tuple
+    of models) or from the ``H`` matrix of :class:`~gmjax.filters.kf.LinearGaussianParams`.
+    """
+    from gmjax.filters.kf import LinearGaussianParams  # kf imports this module
+
+    def found(x):
+        return isinstance(x, LinearGaussianParams) or isinstance(
+            getattr(x, "measurement_noise", None), GaussianMixture)
+
+    for node in jax.tree_util.tree_leaves(params, is_leaf=found):
+        if isinstance(node, LinearGaussianParams):
+            return int(jnp.shape(node.H)[0]) if jnp.ndim(node.H) == 2 else None
+        if found(node):
+            return int(node.measurement_noise.dim)
+    return None
+
+
+def check_measurements(zs: Array, m: int | None = None) -> Array:
+    """``zs`` as an array of shape ``(T, m)`` (static shape checks; fine under ``jit``).
+
+    Raises:
+        ValueError: naming ``zs``: not 2-D, or ``m`` columns expected and not found.
+    """
     zs = jnp.asarray(zs)
     if zs.ndim != 2:
         raise ValueError(f"zs: expected shape (T, m), got {zs.shape}")
+    if m is not None and zs.shape[1] != m:
+        raise ValueError(
+            f"zs: the filter's model measures m={m} values per step, but zs has shape {zs.shape} "
+            f"(expected (T, {m}))"
+        )
     return zs
 
 
@@ -189,11 +219,15 @@ def run(
 
     Returns:
         ``(states, infos)`` with a leading ``T`` axis; ``infos`` is a :class:`StepInfo`.
+
+    Raises:
+        ValueError: ``zs`` not ``(T, m)`` with the model's ``m`` (see :func:`measurement_dim`),
+            or inputs without the leading ``T`` axis.
     """
-    zs = check_measurements(zs)
+    params = filter.params if params is None else params
+    zs = check_measurements(zs, measurement_dim(params))
     n_steps = zs.shape[0]
     inputs = step_inputs(n_steps, inputs)
-    params = filter.params if params is None else params
     if key is None:
         k_init, step_keys = None, None
     else:
