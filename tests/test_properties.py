@@ -17,6 +17,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -25,7 +26,7 @@ from gmjax import mixture as mx
 
 K, D = 5, 2
 DTYPES = (jnp.float32, jnp.float64)
-SETTINGS = dict(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow],
+SETTINGS = dict(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow],
                 derandomize=True)
 
 
@@ -184,3 +185,68 @@ def test_moments_and_gradients_are_finite_and_padding_gets_no_gradient(gm):
     assert _finite((gw, gm_, gP))
     pad = ~np.asarray(gm.mask)
     assert np.all(np.asarray(gm_)[pad] == 0) and np.all(np.asarray(gP)[pad] == 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Every reducer
+
+from test_contract import REDUCERS  # noqa: E402
+
+from gmjax import reduction  # noqa: E402
+
+# a moment-preserving merge of a partition keeps the mixture's mean and covariance (seed 002 eqs 70-72)
+MOMENT_PRESERVING = {"runnalls", "west", "salmond", "gmrc", "kmeans", "brute_force"}
+_HEAVY = {"williams", "brute_force", "pcm", "gmrcm", "refined"}
+_COMPILED: dict = {}
+
+
+def _reducer_step(name):
+    """``jit`` of (output, info, d score / d means) for one reducer, built once per test session."""
+    if name not in _COMPILED:
+        reducer = REDUCERS[name]()
+
+        def f(means, gm):
+            out, _, info = reducer.reduce(gm._replace(means=means), reducer.init(gm.capacity),
+                                          key=jax.random.key(0))
+            s = jnp.sum(jnp.where(out.mask, out.weights * jnp.sum(out.means**2, -1), 0.0))
+            return s + jnp.sum(mx.logpdf(out, jnp.zeros((1, D), out.dtype))), (out, info)
+
+        _COMPILED[name] = jax.jit(lambda gm: jax.grad(f, has_aux=True)(gm.means, gm))
+    return _COMPILED[name]
+
+
+def _reducer_properties(name, gm):
+    dtype = gm.dtype
+    grad, (out, info) = _reducer_step(name)(gm)
+    mx.check(out)
+    assert out.dtype == dtype and _finite((out, info.cost, info.pruned_mass))
+    assert np.all(np.isfinite(np.asarray(grad))), name
+    assert not bool(info.invalid_threshold)
+    assert 1 <= int(info.n_out) <= int(mx.n_active(gm)) == int(info.n_in)
+    labels = np.asarray(info.labels)
+    assert np.all(labels[~np.asarray(gm.mask)] == -1)
+    assert np.all(labels < out.capacity) and np.all(np.asarray(out.mask)[labels[labels >= 0]])
+    rtol = _tol(dtype)["rtol"] * (10 if dtype == jnp.float32 else 1)
+    np.testing.assert_allclose(float(mx.total_weight(out)), float(mx.total_weight(gm)), rtol=rtol)
+    if name in MOMENT_PRESERVING:
+        mu, cov = np_moments(gm)
+        scale = max(1.0, float(np.abs(cov).max()), float(np.abs(mu).max()) ** 2)
+        tol = dict(rtol=rtol, atol=(2e-4 if dtype == jnp.float32 else 1e-10) * scale)
+        m_out, c_out = mx.moments(out)
+        np.testing.assert_allclose(np.asarray(m_out, np.float64), mu, **tol)
+        np.testing.assert_allclose(np.asarray(c_out, np.float64), cov, **tol)
+
+
+@pytest.mark.parametrize(
+    "name", [n if n not in _HEAVY else pytest.param(n, marks=pytest.mark.slow) for n in sorted(REDUCERS)])
+def test_every_reducer_on_random_mixtures(name):
+    """Weight conservation, moments where claimed, finite values and gradients, check() on the
+    output, consistent labels, for random padding patterns in float32 and float64."""
+
+    @settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow],
+              derandomize=True)
+    @given(gm=mixtures(capacity=6))
+    def run(gm):
+        _reducer_properties(name, gm)
+
+    run()

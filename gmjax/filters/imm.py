@@ -351,7 +351,7 @@ def _mix_mixtures(gm: GaussianMixture, log_probs: Array, log_P: Array) -> tuple[
 def _combine_reduction(r: Any, mu: Array) -> Any:
     """The per-model :class:`~gmjax.reduction.ReductionInfo` (stacked on ``M``) as one: counts
     summed, ``pruned_mass`` and ``cost`` weighted by ``mu_j``, ``labels`` concatenated,
-    ``overflow`` any, ``aux`` kept stacked on ``M``."""
+    ``overflow`` and ``invalid_threshold`` any, ``aux`` kept stacked on ``M``."""
     return r._replace(
         n_in=jnp.sum(r.n_in),
         n_out=jnp.sum(r.n_out),
@@ -359,6 +359,7 @@ def _combine_reduction(r: Any, mu: Array) -> Any:
         labels=r.labels.reshape(-1),
         overflow=jnp.any(r.overflow),
         cost=jnp.sum(mu * r.cost),
+        invalid_threshold=jnp.any(r.invalid_threshold),
     )
 
 

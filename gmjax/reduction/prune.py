@@ -70,6 +70,7 @@ def _keep(gm: GaussianMixture, keep: jax.Array, capacity: int):
     )
 
 
+@_util.guard_nan(threshold=1e-5, temperature=0.0)
 def prune_threshold(
     gm: GaussianMixture,
     threshold: Any,
@@ -171,6 +172,7 @@ def censored_count(gm: GaussianMixture, rho: Any, max_components: int | None = N
     return N
 
 
+@_util.guard_nan(rho=0.9544, temperature=0.0)
 def prune_censored(
     gm: GaussianMixture,
     rho: Any = 0.9544,

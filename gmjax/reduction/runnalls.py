@@ -69,6 +69,7 @@ def _runnalls_core(gm, num_out, threshold, capacity):
 
 
 
+@_util.guard_nan(threshold=float("inf"))
 def runnalls(
     gm: GaussianMixture,
     num_out: int,

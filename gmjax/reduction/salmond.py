@@ -54,6 +54,7 @@ def _salmond_core(gm, num_out, threshold, capacity):
 
 
 
+@_util.guard_nan(threshold=float("inf"))
 def salmond(
     gm: GaussianMixture,
     num_out: int,

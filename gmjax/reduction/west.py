@@ -51,6 +51,7 @@ def _west(gm, num_out, threshold, capacity, metric, enhanced):
     return finish(gm, s, n_steps, capacity)
 
 
+@_util.guard_nan(threshold=float("inf"))
 def west(
     gm: GaussianMixture,
     num_out: int,
