@@ -108,3 +108,36 @@ def test_safe_cholesky_of_zero_covariance_is_finite_and_flagged(dtype):
     assert bool(res.repaired)
     assert np.all(np.isfinite(res.factor)) and float(res.jitter) > 0
     assert np.isfinite(float(gaussian.mahalanobis_sq(jnp.ones(2, dtype), jnp.zeros(2, dtype), jnp.zeros((2, 2), dtype))))
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_spd_kernels_equal_scipy_and_the_safe_functions(d):
+    """The broadcasting ``spd_*`` kernels (closed forms for d <= 2) against SciPy and the per-Gaussian
+    functions, over a leading batch axis."""
+    rng = np.random.default_rng(d)
+    A = rng.normal(size=(4, d, d))
+    P = A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(d)
+    B = rng.normal(size=(4, d, d))
+    Q = B @ np.swapaxes(B, -1, -2) + 0.5 * np.eye(d)
+    x, m = rng.normal(size=(4, d)), rng.normal(size=(4, d))
+    Pj, Qj, xj, mj = (jnp.asarray(a, jnp.float64) for a in (P, Q, x, m))
+    np.testing.assert_allclose(gaussian.spd_logdet(Pj), np.linalg.slogdet(P)[1], rtol=1e-12)
+    np.testing.assert_allclose(gaussian.spd_inv(Pj), np.linalg.inv(P), rtol=1e-10, atol=1e-12)
+    quad = np.einsum("ni,nij,nj->n", x, np.linalg.inv(P), x)
+    np.testing.assert_allclose(gaussian.spd_inv_quad(xj, Pj), quad, rtol=1e-12)
+    ref = [stats.multivariate_normal(m[i], P[i]).logpdf(x[i]) for i in range(4)]
+    np.testing.assert_allclose(gaussian.spd_logpdf(xj, mj, Pj), ref, rtol=1e-12)
+    kl = jax.vmap(gaussian.kl_divergence)(mj, Pj, xj, Qj)
+    np.testing.assert_allclose(gaussian.spd_kl(mj, Pj, xj, Qj), kl, rtol=1e-10)
+
+
+def test_moment_merge_pair_preserves_the_moments():
+    w1, w2 = 0.3, 0.5
+    m1, m2 = np.array([0.0, 1.0]), np.array([2.0, -1.0])
+    P1, P2 = np.diag([1.0, 2.0]), np.array([[1.0, 0.3], [0.3, 0.5]])
+    W, m, P = gaussian.moment_merge_pair(*(jnp.asarray(a, jnp.float64) for a in (w1, m1, P1, w2, m2, P2)))
+    mean = (w1 * m1 + w2 * m2) / (w1 + w2)
+    second = (w1 * (P1 + np.outer(m1, m1)) + w2 * (P2 + np.outer(m2, m2))) / (w1 + w2)
+    np.testing.assert_allclose(W, w1 + w2, rtol=1e-15)
+    np.testing.assert_allclose(m, mean, rtol=1e-14)
+    np.testing.assert_allclose(P, second - np.outer(mean, mean), rtol=1e-13, atol=1e-15)

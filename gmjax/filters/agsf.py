@@ -81,6 +81,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax import mixture as gmm
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, PRNGKey
@@ -90,7 +92,6 @@ from gmjax.filters.gsf import gs_predict, gs_update, inherit
 from gmjax.filters.local import local_filter_for
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import ModelParams, StateSpaceModel
-from gmjax.reduction import _util
 from gmjax.reduction import ReductionInfo, make_info
 from gmjax.split import split_gated
 
@@ -253,14 +254,14 @@ def _pair_costs(w: Array, m: Array, P: Array) -> Array:
     and ``P_ij`` the moment-matched covariance; 0 on the diagonal.
     """
     W, _, Pij = jax.vmap(
-        jax.vmap(_util.merge_pair, (None, None, None, 0, 0, 0)), (0, 0, 0, None, None, None)
+        jax.vmap(gaussian.moment_merge_pair, (None, None, None, 0, 0, 0)), (0, 0, 0, None, None, None)
     )(w, m, P, w, m, P)
     ok = W > 0
     Ws = jnp.where(ok, W, 1.0)
     li = jnp.where(ok, w[:, None] / Ws, 0.5)
     lj = jnp.where(ok, w[None, :] / Ws, 0.5)
-    ld = _util.logdet(P)
-    c = 0.5 * (_util.logdet(Pij) - li * ld[:, None] - lj * ld[None, :])
+    ld = gaussian.spd_logdet(P)
+    c = 0.5 * (gaussian.spd_logdet(Pij) - li * ld[:, None] - lj * ld[None, :])
     K = w.shape[0]
     return jnp.where(jnp.eye(K, dtype=bool), 0.0, jnp.maximum(c, 0.0))
 
@@ -368,7 +369,7 @@ def _merge_rules(merge: Step6Merge, carry: _MergeCarry) -> _MergeCarry:
         k = jnp.argmin(flat)
         do = jnp.isfinite(flat[k])
         i, j = k // K, k % K
-        W, mm, PP = _util.merge_pair(c.w[i], c.m[i], c.P[i], c.w[j], c.m[j], c.P[j])
+        W, mm, PP = gaussian.moment_merge_pair(c.w[i], c.m[i], c.P[i], c.w[j], c.m[j], c.P[j])
         at_i = (ar == i) & do
         at_j = (ar == j) & do
         heavier = jnp.where(c.w[j] > c.w[i], j, i)
@@ -497,8 +498,8 @@ class Step6Merge:
 
     def _check(self, gm: GaussianMixture, state: Step6State) -> None:
         for name in ("prune_threshold", "low_weight", "merge_threshold", "merge_don"):
-            _util.validate_nonneg(getattr(self, name), name)
-        _util.validate_capacity(self.capacity, gm)
+            _validate.validate_nonneg(getattr(self, name), name)
+        _validate.validate_capacity(self.capacity, gm)
         if not isinstance(state, Step6State):
             raise ValueError(f"state: expected a Step6State, got {type(state).__name__}")
         K = gm.capacity
@@ -586,7 +587,7 @@ def _check_config(config: AGSFConfig) -> None:
         raise ValueError(f"config.capacity: must be a positive int or None, got {config.capacity!r}")
     if config.split_gate is not None and not callable(config.split_gate):
         raise ValueError("config.split_gate: must be a callable (psi, threshold) -> gate or None")
-    concrete = _util.is_concrete(config.psi_th, config.r, config.l, config.w)
+    concrete = _validate.is_concrete(config.psi_th, config.r, config.l, config.w)
     if concrete:
         if not float(config.psi_th) >= 0:
             raise ValueError(f"config.psi_th: must be >= 0 (inf allowed), got {config.psi_th!r}")
@@ -597,7 +598,7 @@ def _check_config(config: AGSFConfig) -> None:
         if not 0 < float(config.w) < 1:
             raise ValueError(f"config.w: eq 32 needs 0 < omega < 1, got {config.w!r}")
     for name in ("prune_threshold", "low_weight", "merge_threshold", "merge_don"):
-        _util.validate_nonneg(getattr(config, name), f"config.{name}")
+        _validate.validate_nonneg(getattr(config, name), f"config.{name}")
 
 
 def _static_part(config: AGSFConfig) -> tuple:
@@ -663,7 +664,7 @@ def _init_state(cfg: AGSFConfig, sz: _Sizes, prior: Any) -> AGSFState:
     if not isinstance(prior, GaussianMixture):
         raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
     n_live = gmm.n_active(prior)
-    if _util.is_concrete(n_live) and int(n_live) > sz.K_post:
+    if _validate.is_concrete(n_live) and int(n_live) > sz.K_post:
         raise ValueError(
             f"prior: {int(n_live)} live components exceed the posterior capacity {sz.K_post} "
             f"(= capacity {sz.C} // {sz.Q} process-noise components); raise config.capacity"
@@ -768,7 +769,7 @@ def build_agsf(
     _check_config(config)
     local = _resolve_local(model, local)
     rn = model.measurement_noise
-    if _util.is_concrete(rn.mask) and int(np.sum(np.asarray(rn.mask))) != 1:
+    if _validate.is_concrete(rn.mask) and int(np.sum(np.asarray(rn.mask))) != 1:
         raise ValueError(
             f"model.measurement_noise: AGSSCKF (seed 001) assumes one Gaussian measurement noise, "
             f"got {int(np.sum(np.asarray(rn.mask)))} components"

@@ -316,6 +316,8 @@ def build_pcrb_gmm(
 
     ``run`` is jitted; calling it again with the same shapes (and static config fields) does not
     recompile, and ``config.threshold`` may change freely. See :func:`pcrb_gmm` for the arguments.
+    (Long because the per-step body of Algorithms 1-2 closes over the model, the rule and the static
+    config; each stage it calls is its own function above.)
     """
     check_model(model)
     config = GMMPCRBConfig() if config is None else config

@@ -24,26 +24,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from gmjax import gaussian
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import make_info
-
-
-def merge_broadcast(wi, mi, Pi, wj, mj, Pj):
-    """Broadcasting version of :func:`gmjax.reduction._util.merge_pair` (weights ``(...)``, means ``(..., d)``)."""
-    W = wi + wj
-    ok = W > 0
-    Ws = jnp.where(ok, W, 1.0)
-    l1 = jnp.where(ok, wi / Ws, 0.5)
-    l2 = jnp.where(ok, wj / Ws, 0.5)
-    diff = mi - mj
-    m = l1[..., None] * mi + l2[..., None] * mj
-    P = (
-        l1[..., None, None] * Pi
-        + l2[..., None, None] * Pj
-        + (l1 * l2)[..., None, None] * diff[..., :, None] * diff[..., None, :]
-    )
-    return W, m, 0.5 * (P + jnp.swapaxes(P, -1, -2))
 
 
 
@@ -84,7 +68,7 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
     def body(step, s):
         i, j, c, lb = select(s)
         do = (s.n_live > num_out) & (c <= threshold) & jnp.isfinite(c)
-        W, mm, PP = _util.merge_pair(s.w[i], s.m[i], s.P[i], s.w[j], s.m[j], s.P[j])
+        W, mm, PP = gaussian.moment_merge_pair(s.w[i], s.m[i], s.P[i], s.w[j], s.m[j], s.P[j])
         at_i = (ar == i) & do
         at_j = (ar == j) & do
         w = jnp.where(at_i, W, jnp.where(at_j, 0.0, s.w))

@@ -19,12 +19,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from gmjax import gaussian
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 
 
 def overlap(ma, Pa, mb, Pb):
-    return jnp.exp(_util.log_gauss(ma, mb, Pa + Pb))
+    return jnp.exp(gaussian.spd_logpdf(ma, mb, Pa + Pb))
 
 
 class ISEGreedyState(NamedTuple):

@@ -8,8 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax.reduction._util import ise
+from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
@@ -104,9 +105,9 @@ def brute_force(
         ``(reduced mixture, info)``; ``info.cost`` is the optimal ISE.
     """
     del key
-    _util.validate_mixture(gm)
-    num_out = _util.validate_count(num_out, "num_out", 1, gm.capacity)
-    cap = _util.validate_capacity(capacity, gm, minimum=num_out)
+    _validate.validate_mixture(gm)
+    num_out = _validate.validate_count(num_out, "num_out", 1, gm.capacity)
+    cap = _validate.validate_capacity(capacity, gm, minimum=num_out)
     count = _count_partitions(gm.capacity, num_out)
     if count > MAX_PARTITIONS:
         raise ValueError(

@@ -69,9 +69,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmjax import gaussian
 from gmjax._types import Array, ArrayLike, Mask
 from gmjax.mixture import GaussianMixture
-from gmjax.reduction import _util
 
 __all__ = [
     "ClusterResult",
@@ -128,7 +128,7 @@ def similarity_thresholds(gm: GaussianMixture, dims: Sequence[int] | None = None
     """
     means, covs = _select_dims(gm, dims)
     # maha[i, j] = (u_j - u_i)^T P_i^{-1} (u_j - u_i)
-    maha = _util.inv_quad(means[None, :, :] - means[:, None, :], covs[:, None])
+    maha = gaussian.spd_inv_quad(means[None, :, :] - means[:, None, :], covs[:, None])
     sq = jnp.maximum(maha, maha.T)
     live = gm.mask[:, None] & gm.mask[None, :]
     delta = jnp.where(live, _safe_sqrt(jnp.where(live, sq, 0.0)), jnp.inf)

@@ -9,11 +9,13 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.reduction._util import ise
+from gmjax.metrics import ise
 from gmjax.reduction.west import west_distance
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 
@@ -74,12 +76,12 @@ def _cowa(gm, num_out, threshold, capacity):
 
     def body(step, s):
         # enhanced-West selection: smallest w / det P, merged with its ISE-nearest neighbour
-        score = s.w / jnp.exp(_util.logdet(s.P))
+        score = s.w / jnp.exp(gaussian.spd_logdet(s.P))
         i = jnp.argmin(jnp.where(s.mask, score, jnp.inf)).astype(jnp.int32)
         dist = west_distance(s.m[i], s.P[i], s.m, s.P, "ise")
         dist = jnp.where(s.mask & (jnp.arange(K) != i), dist, jnp.inf)
         j = jnp.argmin(dist).astype(jnp.int32)
-        W, mm, PP = _util.merge_pair(s.w[i], s.m[i], s.P[i], s.w[j], s.m[j], s.P[j])
+        W, mm, PP = gaussian.moment_merge_pair(s.w[i], s.m[i], s.P[i], s.w[j], s.m[j], s.P[j])
         w = s.w.at[i].set(W).at[j].set(0.0)
         m = s.m.at[i].set(mm).at[j].set(0.0)
         P = s.P.at[i].set(PP).at[j].set(eye)
@@ -134,7 +136,7 @@ def cowa(
     Arguments as in :func:`williams` (``threshold`` is an ISE bound, may be traced).
     """
     del key
-    num_out, thr, cap = _util.validate_count_threshold(gm, num_out, threshold, capacity)
+    num_out, thr, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
     return _cowa(gm, num_out, thr, cap)
 
 

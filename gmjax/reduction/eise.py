@@ -42,7 +42,6 @@ import jax.numpy as jnp
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
-from gmjax.reduction import _util
 from gmjax.reduction.clustering import (
     ClusterResult,
     centre_distances,
@@ -119,11 +118,11 @@ def merge_membership(gm: GaussianMixture, membership: Array, method: str = "ci")
         within = jnp.einsum("kc,kij->cij", frac, gm.covs)
         cov = gaussian.symmetrize(within + spread)
     else:
-        info = _util.inv(gm.covs)  # (K, d, d); padded slots hold I
+        info = gaussian.spd_inv(gm.covs)  # (K, d, d); padded slots hold I
         info = jnp.where(gm.mask[:, None, None], info, 0.0)
         info_c = jnp.einsum("kc,kij->cij", frac, info)
         info_c = jnp.where(live[:, None, None], info_c, eye)
-        cov = _util.inv(info_c)
+        cov = gaussian.spd_inv(info_c)
         eta = jnp.einsum("kc,kij,kj->ci", frac, info, gm.means)
         mu = jnp.einsum("cij,cj->ci", cov, eta)
     mu = jnp.where(live[:, None], mu, 0.0)
@@ -140,13 +139,13 @@ def cluster_ise(gm: GaussianMixture, membership: Array, merged: GaussianMixture)
     w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
     Aw = jnp.where(gm.mask[:, None], membership.astype(dtype), 0.0) * w[:, None]  # (K, C)
     def pair(ma, Pa, mb, Pb):  # log ∫ N(ma, Pa) N(mb, Pb) = log N(ma; mb, Pa + Pb), (A, B)
-        return _util.log_gauss(ma[:, None, :], mb[None, :, :], Pa[:, None] + Pb[None, :])
+        return gaussian.spd_logpdf(ma[:, None, :], mb[None, :, :], Pa[:, None] + Pb[None, :])
 
     S = jnp.exp(jnp.where(gm.mask[:, None] & gm.mask[None, :],
                           pair(gm.means, gm.covs, gm.means, gm.covs), -jnp.inf))
     S_cross = jnp.exp(jnp.where(gm.mask[:, None] & merged.mask[None, :],
                                 pair(gm.means, gm.covs, merged.means, merged.covs), -jnp.inf))
-    self_norm = jnp.exp(_util.log_gauss(merged.means, merged.means, 2.0 * merged.covs))
+    self_norm = jnp.exp(gaussian.spd_logpdf(merged.means, merged.means, 2.0 * merged.covs))
     Wc = jnp.where(merged.mask, merged.weights, 0.0)
     j_hh = jnp.einsum("mc,mn,nc->c", Aw, S, Aw)
     j_hr = jnp.einsum("mc,mc->c", Aw, S_cross) * Wc

@@ -8,6 +8,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
@@ -22,7 +24,7 @@ def kl_upper_bound(gm: GaussianMixture, centers: GaussianMixture, labels: jax.Ar
     """``sum_i w_i KL(N_i || N_{c(i)})`` — the convexity bound on ``KL(f || g)`` that GMRC's
     k-means iterations decrease (Schieferdecker & Huber 2009, Sec. III)."""
     lab = jnp.maximum(labels, 0)
-    kl = _util.kl_gauss(gm.means, gm.covs, centers.means[lab], centers.covs[lab])
+    kl = gaussian.spd_kl(gm.means, gm.covs, centers.means[lab], centers.covs[lab])
     return jnp.sum(jnp.where(gm.mask & (labels >= 0), gm.weights * kl, 0.0))
 
 
@@ -38,7 +40,7 @@ def _gmrc(gm, num_out, max_iter, capacity):
     init, info0 = _runnalls(gm, num_out, jnp.asarray(jnp.inf, gm.weights.dtype), num_out)
 
     def assign(c):
-        kl = _util.kl_gauss(
+        kl = gaussian.spd_kl(
             gm.means[:, None], gm.covs[:, None], c.means[None], c.covs[None]
         )  # (K, num_out)
         kl = jnp.where(c.mask[None, :], kl, jnp.inf)
@@ -96,10 +98,10 @@ def gmrc(
         key: unused.
     """
     del key
-    _util.validate_mixture(gm)
-    num_out = _util.validate_count(num_out, "num_out", 1, gm.capacity)
-    cap = _util.validate_capacity(capacity, gm, minimum=num_out)
-    max_iter = _util.validate_count(max_iter, "max_iter", 0, 2**31 - 1)
+    _validate.validate_mixture(gm)
+    num_out = _validate.validate_count(num_out, "num_out", 1, gm.capacity)
+    cap = _validate.validate_capacity(capacity, gm, minimum=num_out)
+    max_iter = _validate.validate_count(max_iter, "max_iter", 0, 2**31 - 1)
     return _gmrc(gm, num_out, max_iter, cap)
 
 

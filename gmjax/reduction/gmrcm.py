@@ -34,6 +34,7 @@ from typing import Any, NamedTuple, Sequence
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
@@ -112,14 +113,14 @@ def gmrcm(
         ValueError: for a bad concrete mixture, state or option, naming the argument.
     """
     del key
-    _util.validate_mixture(gm)
+    _validate.validate_mixture(gm)
     validate_search_args(lam=lam, lambda_range=lambda_range, alpha=alpha, temperature=temperature,
                          tol=tol, range_scale=range_scale, grid_size=grid_size,
                          newton_steps=newton_steps, dims=dims, dim=gm.dim)
-    _util.validate_nonneg(weight_threshold, "weight_threshold")
-    _util.validate_nonneg(large_factor, "large_factor")
-    low_steps = _util.validate_count(low_steps, "low_steps", 1, 2**31 - 1)
-    cap = _util.validate_capacity(capacity, gm)
+    _validate.validate_nonneg(weight_threshold, "weight_threshold")
+    _validate.validate_nonneg(large_factor, "large_factor")
+    low_steps = _validate.validate_count(low_steps, "low_steps", 1, 2**31 - 1)
+    cap = _validate.validate_capacity(capacity, gm)
     K = gm.capacity
     if state is None:
         state = init_state(K)

@@ -8,6 +8,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
@@ -26,7 +28,7 @@ def weighted_mahalanobis_sq(wi, mi, Pi, wj, mj, Pj):
     s = wi + wj
     ok = s > 0
     coef = jnp.where(ok, wi * wj / jnp.where(ok, s, 1.0), 0.0)
-    return coef * _util.inv_quad(mi - mj, Pi + Pj)
+    return coef * gaussian.spd_inv_quad(mi - mj, Pi + Pj)
 
 
 def _dist_to_centers(gm: GaussianMixture, cw, cm, cP):
@@ -156,11 +158,11 @@ def kmeans(
         with at most ``num_out`` live components is returned unchanged (compacted).
     """
     del key
-    _util.validate_mixture(gm)
-    num_out = _util.validate_count(num_out, "num_out", 1, gm.capacity)
-    cap = _util.validate_capacity(capacity, gm, minimum=num_out)
-    max_iter = _util.validate_count(max_iter, "max_iter", 1, 2**31 - 1)
-    _util.validate_nonneg(tol, "tol")
+    _validate.validate_mixture(gm)
+    num_out = _validate.validate_count(num_out, "num_out", 1, gm.capacity)
+    cap = _validate.validate_capacity(capacity, gm, minimum=num_out)
+    max_iter = _validate.validate_count(max_iter, "max_iter", 1, 2**31 - 1)
+    _validate.validate_nonneg(tol, "tol")
     if isinstance(tol, jax.core.Tracer):
         raise ValueError("tol: must be a static Python float")
     out, labels, it, conv = _kmeans(gm, num_out, max_iter, float(tol), cap)

@@ -21,8 +21,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from gmjax import gaussian
 from gmjax.mixture import GaussianMixture, sanitize
-from gmjax.reduction import _util
 
 __all__ = ["merge_moment", "merge_ci", "merge_labels", "ci_trace_weights"]
 
@@ -65,7 +65,7 @@ def merge_moment(gm: GaussianMixture):
 
 def _ci_from_lambda(lam, means, covs_inv):
     info = jnp.einsum("k,kij->ij", lam, covs_inv)
-    P = _util.inv(info)
+    P = gaussian.spd_inv(info)
     P = 0.5 * (P + P.T)
     m = P @ jnp.einsum("k,kij,kj->i", lam, covs_inv, means)
     return m, P
@@ -110,7 +110,7 @@ def ci_trace_weights(lam0, covs_inv, live, n_steps: int = 10):
 
     def objective(lam):
         info = jnp.einsum("k,kij->ij", lam, covs_inv)
-        return jnp.trace(_util.inv(info))
+        return jnp.trace(gaussian.spd_inv(info))
 
     def step(lam, _):
         g = jax.grad(objective)(lam)
@@ -152,7 +152,7 @@ def merge_ci(gm: GaussianMixture, *, optimize: bool = False, n_steps: int = 10):
     n = jnp.sum(gm.mask.astype(w.dtype))
     lam = jnp.where(W > 0, _safe_div(w, W), _safe_div(gm.mask.astype(w.dtype), n))
     covs = jnp.where(gm.mask[:, None, None], gm.covs, jnp.eye(gm.dim, dtype=gm.covs.dtype))
-    covs_inv = _util.inv(covs)
+    covs_inv = gaussian.spd_inv(covs)
     if optimize:
         live = gm.mask & (lam > 0)
         lam = ci_trace_weights(lam, covs_inv, live, n_steps)
@@ -219,7 +219,7 @@ def merge_labels(
         dev = gm.means - mu[jnp.minimum(seg, num_out - 1)]
         cov = ssum(lam[:, None, None] * (covs + dev[:, :, None] * dev[:, None, :]))
     else:
-        covs_inv = _util.inv(covs)
+        covs_inv = gaussian.spd_inv(covs)
         if optimize:
             member = (seg[None, :] == jnp.arange(num_out)[:, None]) & valid[None, :]
             lam_c = jnp.where(member, lam[None, :], 0.0)
@@ -229,7 +229,7 @@ def merge_labels(
             lam = jnp.sum(jnp.where(member, lam_c, 0.0), axis=0)
         info = ssum(lam[:, None, None] * covs_inv)
         info = jnp.where(out_mask[:, None, None], info, eye)
-        cov = _util.inv(info)
+        cov = gaussian.spd_inv(info)
         vec = ssum(lam[:, None] * jnp.einsum("kij,kj->ki", covs_inv, gm.means))
         mu = jnp.einsum("cij,cj->ci", cov, vec)
     cov = 0.5 * (cov + jnp.swapaxes(cov, -1, -2))

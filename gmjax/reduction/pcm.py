@@ -39,6 +39,7 @@ from typing import Any, Sequence
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture, sanitize
@@ -90,22 +91,22 @@ def validate_search_args(
     if len(tuple(lambda_range)) != 2:
         raise ValueError(f"lambda_range: expected (low, high), got {lambda_range!r}")
     lo, hi = lambda_range
-    _util.validate_nonneg(lo, "lambda_range")
-    _util.validate_nonneg(hi, "lambda_range")
-    if _util.is_concrete(lo, hi) and not float(lo) < float(hi):
+    _validate.validate_nonneg(lo, "lambda_range")
+    _validate.validate_nonneg(hi, "lambda_range")
+    if _validate.is_concrete(lo, hi) and not float(lo) < float(hi):
         raise ValueError(f"lambda_range: need low < high, got {lambda_range!r}")
     if lam is not None:
-        _util.validate_nonneg(lam, "lam", allow_inf=False)
-    _util.validate_nonneg(alpha, "alpha", allow_inf=False)
-    _util.validate_nonneg(tol, "tol", allow_inf=False)
+        _validate.validate_nonneg(lam, "lam", allow_inf=False)
+    _validate.validate_nonneg(alpha, "alpha", allow_inf=False)
+    _validate.validate_nonneg(tol, "tol", allow_inf=False)
     for name, value in (("temperature", temperature), ("range_scale", range_scale)):
-        _util.validate_nonneg(value, name, allow_inf=False)
+        _validate.validate_nonneg(value, name, allow_inf=False)
         if name == "temperature" and allow_zero_temperature:
             continue
-        if _util.is_concrete(value) and float(value) == 0.0:
+        if _validate.is_concrete(value) and float(value) == 0.0:
             raise ValueError(f"{name}: must be positive, got {value!r}")
-    _util.validate_count(grid_size, "grid_size", 2, 10_000)
-    _util.validate_count(newton_steps, "newton_steps", 0, 10_000)
+    _validate.validate_count(grid_size, "grid_size", 2, 10_000)
+    _validate.validate_count(newton_steps, "newton_steps", 0, 10_000)
     if dims is not None:
         dims = tuple(dims)
         if not dims or any((not isinstance(i, int)) or i < 0 or i >= dim for i in dims):
@@ -208,8 +209,8 @@ def pcm(
         ValueError: for a bad concrete mixture or an invalid option, naming the argument.
     """
     del key
-    _util.validate_mixture(gm)
-    _util.validate_range(rho, "rho", 0.0, 1.0)
+    _validate.validate_mixture(gm)
+    _validate.validate_range(rho, "rho", 0.0, 1.0)
     if merge not in ("ci", "moment"):
         raise ValueError(f"merge: expected 'ci' or 'moment', got {merge!r}")
     validate_mode(mode)
@@ -222,8 +223,8 @@ def pcm(
                          newton_steps=newton_steps, dims=dims, dim=gm.dim,
                          allow_zero_temperature=mode != "hard")
     if max_components is not None:
-        max_components = _util.validate_count(max_components, "max_components", 1, 2**31 - 1)
-    cap = _util.validate_capacity(capacity, gm)
+        max_components = _validate.validate_count(max_components, "max_components", 1, 2**31 - 1)
+    cap = _validate.validate_capacity(capacity, gm)
     dims = None if dims is None else tuple(dims)
 
     if mode != "hard":

@@ -22,6 +22,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
@@ -106,11 +107,11 @@ def prune_threshold(
         ``n_expected`` (``Σ_k g_k``, the expected number of survivors).
     """
     del key
-    _util.validate_mixture(gm)
-    _util.validate_nonneg(threshold, "threshold")
+    _validate.validate_mixture(gm)
+    _validate.validate_nonneg(threshold, "threshold")
     validate_temperature(temperature)
     validate_mode(mode)
-    cap = _util.validate_capacity(capacity, gm)
+    cap = _validate.validate_capacity(capacity, gm)
     if mode != "hard":
         gates = threshold_gates(gm, threshold, temperature, mode=mode)
         return gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))
@@ -136,9 +137,9 @@ def prune_top(
         key: unused.
     """
     del key
-    _util.validate_mixture(gm)
-    num_out = _util.validate_count(num_out, "num_out", 1, gm.capacity)
-    cap = _util.validate_capacity(capacity, gm, minimum=num_out)
+    _validate.validate_mixture(gm)
+    num_out = _validate.validate_count(num_out, "num_out", 1, gm.capacity)
+    cap = _validate.validate_capacity(capacity, gm, minimum=num_out)
     return _prune_top(gm, num_out, cap)
 
 
@@ -214,13 +215,13 @@ def prune_censored(
         ``gates`` and ``n_expected`` (``Σ_k g_k``) in the relaxed modes.
     """
     del key
-    _util.validate_mixture(gm)
-    _util.validate_range(rho, "rho", 0.0, 1.0)
+    _validate.validate_mixture(gm)
+    _validate.validate_range(rho, "rho", 0.0, 1.0)
     validate_temperature(temperature)
     validate_mode(mode)
     if max_components is not None:
-        max_components = _util.validate_count(max_components, "max_components", 1, 2**31 - 1)
-    cap = _util.validate_capacity(capacity, gm)
+        max_components = _validate.validate_count(max_components, "max_components", 1, 2**31 - 1)
+    cap = _validate.validate_capacity(capacity, gm)
     if mode != "hard":
         gates = censored_gates(gm, rho, temperature, max_components=max_components, mode=mode)
         return gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))

@@ -10,8 +10,9 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax.reduction._util import ise
+from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
@@ -114,12 +115,12 @@ def ise_refine(
         key: unused.
     """
     del key
-    _util.validate_mixture(gm, "gm")
-    _util.validate_mixture(target, "target")
+    _validate.validate_mixture(gm, "gm")
+    _validate.validate_mixture(target, "target")
     if gm.dim != target.dim:
         raise ValueError(f"target: dimension {target.dim} differs from gm's {gm.dim}")
-    n_steps = _util.validate_count(n_steps, "n_steps", 0, 2**31 - 1)
-    _util.validate_nonneg(learning_rate, "learning_rate", allow_inf=False)
+    n_steps = _validate.validate_count(n_steps, "n_steps", 0, 2**31 - 1)
+    _validate.validate_nonneg(learning_rate, "learning_rate", allow_inf=False)
     lr = jnp.asarray(learning_rate, gm.weights.dtype)
     return _refine(gm, target, n_steps, lr, bool(optimize_weights))
 

@@ -30,9 +30,9 @@ from typing import Any, Callable, Sequence
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture, sanitize
-from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, make_info
 from gmjax.reduction.clustering import centre_distances, gauss_cluster, similarity_thresholds
 from gmjax.reduction.eise import onehot_membership, relaxed_membership
@@ -64,7 +64,7 @@ def validate_mode(mode: Any, name: str = "mode") -> str:
 
 def validate_temperature(temperature: Any, name: str = "temperature") -> None:
     """``ValueError`` when a concrete temperature is negative, NaN or infinite (no-op on tracers)."""
-    _util.validate_nonneg(temperature, name, allow_inf=False)
+    _validate.validate_nonneg(temperature, name, allow_inf=False)
 
 
 def straight_through(hard: Array, soft: Array) -> Array:

@@ -13,6 +13,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction._greedy import (
@@ -20,7 +22,6 @@ from gmjax.reduction._greedy import (
     finish,
     greedy_steps,
     init_state,
-    merge_broadcast,
     sequential,
     upper_argmin,
 )
@@ -38,10 +39,10 @@ def runnalls_cost(wi, mi, Pi, wj, mj, Pj, ldi=None, ldj=None):
     stored; broadcasts over leading axes. ``ldi``/``ldj`` are optional precomputed
     ``log det P_i`` / ``log det P_j``.
     """
-    W, _, Pij = merge_broadcast(wi, mi, Pi, wj, mj, Pj)
-    ldi = _util.logdet(Pi) if ldi is None else ldi
-    ldj = _util.logdet(Pj) if ldj is None else ldj
-    return 0.5 * (W * _util.logdet(Pij) - wi * ldi - wj * ldj)
+    W, _, Pij = gaussian.moment_merge_pair(wi, mi, Pi, wj, mj, Pj)
+    ldi = gaussian.spd_logdet(Pi) if ldi is None else ldi
+    ldj = gaussian.spd_logdet(Pj) if ldj is None else ldj
+    return 0.5 * (W * gaussian.spd_logdet(Pij) - wi * ldi - wj * ldj)
 
 
 
@@ -53,14 +54,14 @@ def _runnalls(gm, num_out, threshold, capacity):
 
 def _runnalls_core(gm, num_out, threshold, capacity):
     w = jnp.where(gm.mask, gm.weights, 0.0)
-    ld = _util.logdet(gm.covs)
+    ld = gaussian.spd_logdet(gm.covs)
     C = runnalls_cost(
         w[:, None], gm.means[:, None], gm.covs[:, None], w[None, :], gm.means[None], gm.covs[None],
         ld[:, None], ld[None, :],
     )
 
     def row_cost(s, i):
-        ld = _util.logdet(s.P)
+        ld = gaussian.spd_logdet(s.P)
         return runnalls_cost(s.w[i], s.m[i], s.P[i], s.w, s.m, s.P, ld[i], ld)
 
     body, n_steps = greedy_steps(gm, num_out, threshold, upper_argmin, row_cost)
@@ -96,7 +97,7 @@ def runnalls(
         merge sequence.
     """
     del key
-    num_out, threshold, cap = _util.validate_count_threshold(gm, num_out, threshold, capacity)
+    num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
     return _runnalls(gm, num_out, threshold, cap)
 
 

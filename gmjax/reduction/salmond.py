@@ -8,6 +8,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, moments
 from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
@@ -41,7 +43,7 @@ def _salmond(gm, num_out, threshold, capacity):
 def _salmond_core(gm, num_out, threshold, capacity):
     w = jnp.where(gm.mask, gm.weights, 0.0)
     _, Ptot = moments(gm)
-    Pinv = _util.inv(Ptot)
+    Pinv = gaussian.spd_inv(Ptot)
     C = salmond_cost(w[:, None], gm.means[:, None], w[None, :], gm.means[None], Pinv)
 
     def row_cost(s, i):
@@ -70,7 +72,7 @@ def salmond(
     smallest distance exceeds ``threshold``. Arguments as in :func:`runnalls`.
     """
     del key
-    num_out, threshold, cap = _util.validate_count_threshold(gm, num_out, threshold, capacity)
+    num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
     return _salmond(gm, num_out, threshold, cap)
 
 

@@ -8,6 +8,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
@@ -34,7 +36,7 @@ def _vo_ma(gm, prune_threshold, merge_threshold, max_components, capacity):
         any_alive = jnp.any(alive)
         j = jnp.argmax(jnp.where(alive, w, -jnp.inf))
         # (m_i - m_j)^T P_i^{-1} (m_i - m_j) <= U, with the candidate's own covariance P_i
-        dist = _util.inv_quad(gm.means - gm.means[j], covs)
+        dist = gaussian.spd_inv_quad(gm.means - gm.means[j], covs)
         L = alive & (dist <= merge_threshold) & any_alive
         return alive & ~L, jnp.where(L, step, labels)
 
@@ -82,12 +84,12 @@ def vo_ma(
         key: unused.
     """
     del key
-    _util.validate_mixture(gm)
-    _util.validate_nonneg(prune_threshold, "prune_threshold")
-    _util.validate_nonneg(merge_threshold, "merge_threshold")
+    _validate.validate_mixture(gm)
+    _validate.validate_nonneg(prune_threshold, "prune_threshold")
+    _validate.validate_nonneg(merge_threshold, "merge_threshold")
     if max_components is not None:
-        max_components = _util.validate_count(max_components, "max_components", 1, gm.capacity)
-    cap = _util.validate_capacity(capacity, gm)
+        max_components = _validate.validate_count(max_components, "max_components", 1, gm.capacity)
+    cap = _validate.validate_capacity(capacity, gm)
     dt = gm.weights.dtype
     return _vo_ma(
         gm, jnp.asarray(prune_threshold, dt), jnp.asarray(merge_threshold, dt), max_components, cap

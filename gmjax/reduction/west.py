@@ -9,6 +9,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction._greedy import finish, greedy_steps, init_state
@@ -25,10 +27,10 @@ def west_distance(mi, Pi, mj, Pj, metric: str):
     unit-weight Gaussians (the ISE-cost variant).
     """
     if metric == "kl":
-        return _util.kl_gauss(mi, Pi, mj, Pj)
-    jij = jnp.exp(_util.log_gauss(mi, mj, Pi + Pj))
-    jii = jnp.exp(_util.log_gauss(mi, mi, 2.0 * Pi))
-    jjj = jnp.exp(_util.log_gauss(mj, mj, 2.0 * Pj))
+        return gaussian.spd_kl(mi, Pi, mj, Pj)
+    jij = jnp.exp(gaussian.spd_logpdf(mi, mj, Pi + Pj))
+    jii = jnp.exp(gaussian.spd_logpdf(mi, mi, 2.0 * Pi))
+    jjj = jnp.exp(gaussian.spd_logpdf(mj, mj, 2.0 * Pj))
     return jii + jjj - 2.0 * jij
 
 
@@ -39,7 +41,7 @@ def _west(gm, num_out, threshold, capacity, metric, enhanced):
     def select(s):
         # West (1993) Sec. 2.3: the smallest weight; the "enhanced" variant (Chen, Chang & Smith
         # 2010, Sec. 3.2) ranks by w / det P instead.
-        score = s.w / jnp.exp(_util.logdet(s.P)) if enhanced else s.w
+        score = s.w / jnp.exp(gaussian.spd_logdet(s.P)) if enhanced else s.w
         i = jnp.argmin(jnp.where(s.mask, score, jnp.inf)).astype(jnp.int32)
         dist = west_distance(s.m[i], s.P[i], s.m, s.P, metric)
         dist = jnp.where(s.mask & (jnp.arange(K) != i), dist, jnp.inf)
@@ -74,7 +76,7 @@ def west(
     del key
     if metric not in ("kl", "ise"):
         raise ValueError(f"metric: expected 'kl' or 'ise', got {metric!r}")
-    num_out, threshold, cap = _util.validate_count_threshold(gm, num_out, threshold, capacity)
+    num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
     return _west(gm, num_out, threshold, cap, metric, bool(enhanced))
 
 

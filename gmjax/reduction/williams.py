@@ -9,12 +9,13 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from gmjax import _validate
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.reduction._util import ise
-from gmjax.reduction._greedy import merge_broadcast
+from gmjax.metrics import ise
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 
 __all__ = ["williams", "Williams"]
@@ -22,6 +23,8 @@ __all__ = ["williams", "Williams"]
 
 @partial(jax.jit, static_argnames=("num_out", "allow_prune", "capacity"))
 def _williams(gm, num_out, threshold, allow_prune, capacity):
+    """The greedy loop of :func:`williams`. One function because the step body closes over the
+    original mixture's ISE terms (``J_hh``, the overlaps) that every candidate action updates."""
     K = gm.capacity
     d = gm.dim
     eye = jnp.eye(d, dtype=gm.covs.dtype)
@@ -40,11 +43,11 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
         Jrr = w @ Sw
         Jhr = w @ a
         # merge candidates (K, K)
-        Wc, mc, Pc = merge_broadcast(w[:, None], s.m[:, None], s.P[:, None], w[None], s.m[None], s.P[None])
+        Wc, mc, Pc = gaussian.moment_merge_pair(w[:, None], s.m[:, None], s.P[:, None], w[None], s.m[None], s.P[None])
         Sc = overlap(mc[:, :, None], Pc[:, :, None], s.m[None, None], s.P[None, None])  # (K,K,K)
         Sc = jnp.where(s.mask[None, None, :], Sc, 0.0)
         ac = overlap(mc[:, :, None], Pc[:, :, None], gm.means[None, None], gm.covs[None, None]) @ w0
-        Scc = jnp.exp(_util.log_gauss(mc, mc, 2.0 * Pc))
+        Scc = jnp.exp(gaussian.spd_logpdf(mc, mc, 2.0 * Pc))
         Sc_w = Sc @ w
         ii = jnp.arange(K)
         Sc_i = Sc[ii[:, None], ii[None, :], ii[:, None]]  # S(c_ij, i)
@@ -140,7 +143,7 @@ def williams(
         ``(i, j)`` for a merge, ``(i, -1)`` for a deletion, ``(-2, -2)`` for no action.
     """
     del key
-    num_out, thr, cap = _util.validate_count_threshold(gm, num_out, threshold, capacity)
+    num_out, thr, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
     return _williams(gm, num_out, thr, bool(allow_prune), cap)
 
 
