@@ -35,9 +35,9 @@ from reference import agsf_np  # noqa: E402
 
 from gmjax import studies  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
+from gmjax.montecarlo import score_run, summarize  # noqa: E402
 from gmjax.scenarios.bearings_only import BEARINGS_SENSORS, bearings_only  # noqa: E402
 from gmjax.scenarios.gamma_system import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
-from gmjax.montecarlo import score_run, summarize  # noqa: E402
 
 # the filters of `gmjax study gamma` / `gmjax study bearings` (UKF, SCKF, GSUKF, GSCKF, AGSSCKF, PF)
 FACTORIES = studies.STUDIES["gamma"]().filters

@@ -310,7 +310,7 @@ def spd_logpdf(x: jax.Array, m: jax.Array, P: jax.Array) -> jax.Array:
     return -0.5 * (d * _LOG_2PI + spd_logdet(P) + spd_inv_quad(x - m, P))
 
 
-def spd_kl(m1, P1, m2, P2) -> jax.Array:
+def spd_kl(m1: Array, P1: Array, m2: Array, P2: Array) -> jax.Array:
     """``KL(N(m1, P1) || N(m2, P2))`` broadcast over leading axes."""
     d = P1.shape[-1]
     P2i = spd_inv(P2)
@@ -318,7 +318,7 @@ def spd_kl(m1, P1, m2, P2) -> jax.Array:
     return 0.5 * (tr + spd_inv_quad(m2 - m1, P2) - d + spd_logdet(P2) - spd_logdet(P1))
 
 
-def moment_merge_pair(w1, m1, P1, w2, m2, P2):
+def moment_merge_pair(w1: Array, m1: Array, P1: Array, w2: Array, m2: Array, P2: Array) -> tuple[Array, Array, Array]:
     """Moment-preserving merge of two components (seed 002 eqs 70–72 written with ``lambda_i``).
 
     ``W = w1 + w2``, ``l_i = w_i / W``, ``m = l1 m1 + l2 m2``,

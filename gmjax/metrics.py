@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian
-from gmjax.mixture import GaussianMixture, check_same_dim, log_weights, logpdf, sample
 from gmjax._types import Array, ArrayLike, PRNGKey
+from gmjax.mixture import GaussianMixture, check_same_dim, log_weights, logpdf, sample
 
 __all__ = [
     "cross_overlap",

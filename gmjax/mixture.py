@@ -19,7 +19,7 @@ import numpy as np
 from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
-from gmjax._types import Array, ArrayLike, Covs, Mask, Means, Matrix, PRNGKey, Vector, Weights
+from gmjax._types import Array, ArrayLike, Covs, DTypeLike, Mask, Matrix, Means, PRNGKey, Vector, Weights
 
 _LOG_2PI = 1.8378770664093453
 
@@ -88,8 +88,8 @@ class GaussianMixture(NamedTuple):
         capacity: int | None = None,
         *,
         normalize: bool = True,
-        dtype=None,
-    ) -> "GaussianMixture":
+        dtype: DTypeLike | None = None,
+    ) -> GaussianMixture:
         """Validate concrete arrays and build a padded mixture (the API boundary).
 
         Args:
@@ -161,7 +161,7 @@ class GaussianMixture(NamedTuple):
         means: ArrayLike,
         covs: ArrayLike,
         mask: ArrayLike | None = None,
-    ) -> "GaussianMixture":
+    ) -> GaussianMixture:
         """Build a mixture inside traced code (no validation); padded slots are sanitised."""
         weights = jnp.asarray(weights)
         mask = jnp.ones(weights.shape, bool) if mask is None else jnp.asarray(mask, bool)

@@ -39,10 +39,10 @@ from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
 from gmjax import mixture as gmm
-from gmjax._types import Array, PRNGKey
-from gmjax.filters.local import LOCAL_FILTERS
+from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.filters._core import LocalFilter, check_model, gaussian_moments, is_missing
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
+from gmjax.filters.local import LOCAL_FILTERS
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import ModelParams, StateSpaceModel
 
@@ -112,7 +112,7 @@ def _mix(local: LocalFilter, states, log_probs, log_P):
     return log_c, jax.vmap(local.init)(x0, P0)
 
 
-def imm_moments(local: LocalFilter):
+def imm_moments(local: LocalFilter) -> Callable[[IMMState], tuple[Array, Array]]:
     """``state -> (mean, cov)`` of the IMM mixture ``sum_j mu_j N(x_j, P_j)``."""
 
     def moments(state: IMMState):
@@ -187,11 +187,11 @@ def _local_filters(models, filter, filter_kwargs) -> list[LocalFilter]:
 
 def build_imm(
     models: Sequence[StateSpaceModel],
-    transition,
+    transition: ArrayLike,
     *,
     filter: str | Callable[[StateSpaceModel], LocalFilter] = "ekf",
-    initial_probs=None,
-    **filter_kwargs,
+    initial_probs: ArrayLike | None = None,
+    **filter_kwargs: Any,
 ) -> Filter:
     """An IMM filter over ``M`` models (see the module docstring).
 
@@ -390,12 +390,12 @@ def _imm_gsf_info(log_mu: Array, loglik: Array, infos: StepInfo) -> StepInfo:
 
 def build_imm_gsf(
     models: Sequence[StateSpaceModel],
-    transition,
+    transition: ArrayLike,
     *,
     local: str | LocalFilter = "ekf",
-    reducer=None,
+    reducer: Any = None,
     capacity: int = 16,
-    initial_probs=None,
+    initial_probs: ArrayLike | None = None,
     track_ise: bool = False,
 ) -> Filter:
     """An IMM whose model-conditioned filters are Gaussian sum filters (GM prior and noises).

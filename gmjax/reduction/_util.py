@@ -15,8 +15,6 @@ import jax.numpy as jnp
 from gmjax import mixture
 from gmjax.mixture import GaussianMixture
 
-
-
 # ----------------------------------------------------------------------------- finalisation
 
 

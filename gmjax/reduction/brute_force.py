@@ -10,6 +10,7 @@ import numpy as np
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
@@ -124,5 +125,5 @@ class BruteForce(Stateless):
     num_out: int = static_field(3)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return brute_force(gm, self.num_out, capacity=self.capacity, key=key)

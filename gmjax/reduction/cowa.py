@@ -9,20 +9,20 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
+from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.metrics import ise
-from gmjax.reduction.west import west_distance
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.west import west_distance
 
 __all__ = ["cowa", "optimal_weights", "COWA"]
 
 
-def optimal_weights(S, b, active, total, n_iter):
+def optimal_weights(S: Array, b: Array, active: Array, total: Array, n_iter: int) -> tuple[Array, Array]:
     """ISE-optimal weights on ``active`` with ``sum w = total`` and ``w >= 0`` (COWA's QP).
 
     Minimises ``w^T S w - 2 b^T w``: on the active set ``S w = b + nu 1`` with ``nu`` fixed by the
@@ -148,5 +148,5 @@ class COWA(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return cowa(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)

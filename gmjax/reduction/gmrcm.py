@@ -1,4 +1,4 @@
-"""Cluster-merge reduction, GMRCM (seed 003, Algorithm 1 steps 4–8).
+"""Cluster-merge reduction, GMRCM (Xu et al. 2019 = seed 003, Algorithm 1 steps 4–8).
 
 Per call (one filter step):
 
@@ -239,6 +239,6 @@ class GMRCM:
             large_factor=self.large_factor, dims=self.dims, capacity=self.capacity, key=key,
         )
 
-    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
+    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         out, _, info = self.reduce(gm, None, key=key)
         return out, info

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
@@ -256,7 +257,7 @@ class PruneThreshold(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_threshold(gm, self.threshold, temperature=self.temperature, mode=self.mode,
                                capacity=self.capacity, key=key)
 
@@ -268,7 +269,7 @@ class PruneTop(Stateless):
     num_out: int = static_field(10)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_top(gm, self.num_out, capacity=self.capacity, key=key)
 
 
@@ -287,7 +288,7 @@ class PruneCensored(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_censored(
             gm, self.rho, self.max_components, temperature=self.temperature, mode=self.mode,
             capacity=self.capacity, key=key,

@@ -12,6 +12,7 @@ import optax
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
@@ -141,7 +142,7 @@ class Refined(Stateless):
     n_steps: int = static_field(200)
     learning_rate: Any = 1e-2
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         red, info = self.base(gm, key=key)
         out, rinfo = ise_refine(red, gm, n_steps=self.n_steps, learning_rate=self.learning_rate)
         return out, info._replace(
