@@ -25,6 +25,7 @@ from gmjax.reduction._greedy import (
     sequential,
     upper_argmin,
 )
+from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]
@@ -69,6 +70,7 @@ def _runnalls_core(gm, num_out, threshold, capacity):
 
 
 
+@_util.guard_nan(threshold=float("inf"))
 def runnalls(
     gm: GaussianMixture,
     num_out: int,
