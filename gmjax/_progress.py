@@ -17,8 +17,16 @@ from typing import IO, Iterator
 __all__ = ["Progress"]
 
 
+def _in_jupyter() -> bool:
+    """True inside a running Jupyter kernel (not merely when ipykernel has been imported)."""
+    ipython = sys.modules.get("IPython")
+    get = getattr(ipython, "get_ipython", None)
+    shell = get() if callable(get) else None
+    return type(shell).__name__ == "ZMQInteractiveShell"
+
+
 def _interactive(stream: IO[str]) -> bool:
-    if "ipykernel" in sys.modules:
+    if _in_jupyter():
         return True
     isatty = getattr(stream, "isatty", None)
     return bool(isatty and isatty())

@@ -838,7 +838,7 @@ def build_agsf(
             loglik=up.loglik,
             n_components=gmm.n_active(post),
             flags=StepFlags(repaired=up.repaired, overflow=rinfo.overflow,
-                            degenerate=up.degenerate),
+                            degenerate=up.degenerate, nonfinite_measurement=missing),
             reduction=rinfo,
             extra={"n_predicted": n_predicted, "n_split": n_split,
                    "n_updated": gmm.n_active(gm), "don_max": don_max},

@@ -522,7 +522,7 @@ def _update(cfg: _Static, params: BankParams, state: BankState, z: Array,
     new = state._replace(mean=mean, cov=cov,
                          preload_cov=jnp.where(missing, state.preload_cov, preload_post))
     flags = StepFlags(repaired=(repaired | rep_c) & ~missing, overflow=jnp.zeros((), bool),
-                      degenerate=degenerate & ~missing)
+                      degenerate=degenerate & ~missing, nonfinite_measurement=missing)
     info = StepInfo(mean=mean, cov=cov, loglik=up.loglik, n_components=jnp.ones((), jnp.int32),
                     flags=flags, reduction=None,
                     extra={"initial": x_check, "active": sel, "missing": missing})
@@ -571,7 +571,8 @@ def build_bank(
           (for the other methods the posterior mean);
         * ``"active"``: ``(2,)`` int32 ``(i, j)`` of the kept model; ``(-1, -1)`` for
           ``gsf-merge`` and on a predict-only step;
-        * ``"missing"``: ``()`` bool, the measurement held a NaN (predict-only step).
+        * ``"missing"``: ``()`` bool, the measurement held a NaN or ``±inf`` (predict-only step;
+          also ``flags.nonfinite_measurement``).
 
     Raises:
         ValueError: unknown ``method``, a bad model, ``noise_gain`` or ``ssg_iterations``; at

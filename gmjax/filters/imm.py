@@ -130,7 +130,7 @@ def _posterior_probs(log_probs: Array, logliks: Array, z: Array) -> tuple[Array,
     Args:
         log_probs: ``(M,)`` predicted ``log c_j``.
         logliks: ``(M,)`` ``log L_j``.
-        z: ``(m,)`` the measurement (a NaN: predict-only).
+        z: ``(m,)`` the measurement (a non-finite entry: predict-only).
 
     Returns:
         ``(log_mu (M,), loglik (), degenerate ())``: a missing measurement, or every model
@@ -272,7 +272,7 @@ def build_imm(
         log_mu, loglik, degenerate = _posterior_probs(state.log_probs, infos.loglik, z)
         new = IMMState(states, log_mu)
         mean, cov = moments(new)
-        flags = StepFlags(jnp.any(infos.repaired), jnp.zeros((), bool), degenerate)
+        flags = StepFlags(jnp.any(infos.repaired), jnp.zeros((), bool), degenerate, is_missing(z))
         extra = {"model_probs": jnp.exp(log_mu), "model_loglik": infos.loglik,
                  "innovation": infos.innovation, "innovation_cov": infos.innovation_cov}
         return new, StepInfo(mean, cov, loglik, jnp.asarray(M, jnp.int32), flags, None, extra)
@@ -352,7 +352,7 @@ def _mix_mixtures(gm: GaussianMixture, log_probs: Array, log_P: Array) -> tuple[
 def _combine_reduction(r: Any, mu: Array) -> Any:
     """The per-model :class:`~gmjax.reduction.ReductionInfo` (stacked on ``M``) as one: counts
     summed, ``pruned_mass`` and ``cost`` weighted by ``mu_j``, ``labels`` concatenated,
-    ``overflow`` any, ``aux`` kept stacked on ``M``."""
+    ``overflow`` and ``invalid_threshold`` any, ``aux`` kept stacked on ``M``."""
     return r._replace(
         n_in=jnp.sum(r.n_in),
         n_out=jnp.sum(r.n_out),
@@ -360,6 +360,7 @@ def _combine_reduction(r: Any, mu: Array) -> Any:
         labels=r.labels.reshape(-1),
         overflow=jnp.any(r.overflow),
         cost=jnp.sum(mu * r.cost),
+        invalid_threshold=jnp.any(r.invalid_threshold),
     )
 
 
@@ -372,6 +373,7 @@ def _imm_gsf_info(log_mu: Array, loglik: Array, infos: StepInfo) -> StepInfo:
         repaired=jnp.any(infos.flags.repaired),
         overflow=jnp.any(infos.flags.overflow),
         degenerate=jnp.all(infos.flags.degenerate),
+        nonfinite_measurement=jnp.any(infos.flags.nonfinite_measurement),
     )
     extra = {
         "model_probs": mu,

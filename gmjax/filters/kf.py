@@ -127,6 +127,6 @@ def kalman_filter(F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, prior_
         del key
         loc = local(p)
         new, info = loc.update(state, z, inputs.t, jnp.zeros(p.R.shape[0], state.mean.dtype), p.R)
-        return new, local_step_info(loc, new, info)
+        return new, local_step_info(loc, new, info, z)
 
     return Filter(init, predict, update, params)

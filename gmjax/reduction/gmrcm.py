@@ -64,6 +64,8 @@ def init_state(capacity: int) -> GMRCMState:
     return GMRCMState(jnp.zeros((capacity,), jnp.int32))
 
 
+@_util.guard_nan(alpha=0.3, lam=1.5, lambda_range=1.5, temperature=0.25, tol=1e-6, range_scale=0.5,
+           weight_threshold=0.01, large_factor=1.5, state_init=init_state)
 def gmrcm(
     gm: GaussianMixture,
     state: GMRCMState | None = None,

@@ -142,6 +142,8 @@ def fixed_result(gm: GaussianMixture, lam: ArrayLike, labels: Array, value: Arra
                         jnp.zeros((), bool))
 
 
+@_util.guard_nan(rho=0.9544, alpha=1e-3, lam=2.0, lambda_range=2.0, temperature=0.2, tol=1e-6, range_scale=0.5,
+           gate_temperature=0.0)
 def pcm(
     gm: GaussianMixture,
     *,

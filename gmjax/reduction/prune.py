@@ -26,6 +26,7 @@ from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
+from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 from gmjax.reduction.relax import (
     censored_gates,
@@ -71,6 +72,7 @@ def _keep(gm: GaussianMixture, keep: jax.Array, capacity: int):
     )
 
 
+@_util.guard_nan(threshold=1e-5, temperature=0.0)
 def prune_threshold(
     gm: GaussianMixture,
     threshold: Any,
@@ -172,6 +174,7 @@ def censored_count(gm: GaussianMixture, rho: Any, max_components: int | None = N
     return N
 
 
+@_util.guard_nan(rho=0.9544, temperature=0.0)
 def prune_censored(
     gm: GaussianMixture,
     rho: Any = 0.9544,

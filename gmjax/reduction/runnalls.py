@@ -17,6 +17,7 @@ from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction import _util
 from gmjax.reduction._greedy import (
     clean_upper,
     finish,
@@ -69,6 +70,7 @@ def _runnalls_core(gm, num_out, threshold, capacity):
 
 
 
+@_util.guard_nan(threshold=float("inf"))
 def runnalls(
     gm: GaussianMixture,
     num_out: int,

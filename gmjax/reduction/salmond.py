@@ -12,6 +12,7 @@ from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, moments
+from gmjax.reduction import _util
 from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
 from gmjax.reduction.base import ReductionInfo, Stateless
 
@@ -55,6 +56,7 @@ def _salmond_core(gm, num_out, threshold, capacity):
 
 
 
+@_util.guard_nan(threshold=float("inf"))
 def salmond(
     gm: GaussianMixture,
     num_out: int,

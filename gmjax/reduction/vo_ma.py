@@ -56,6 +56,7 @@ def _vo_ma(gm, prune_threshold, merge_threshold, max_components, capacity):
     )
 
 
+@_util.guard_nan(prune_threshold=1e-5, merge_threshold=4.0)
 def vo_ma(
     gm: GaussianMixture,
     prune_threshold: Any = 1e-5,

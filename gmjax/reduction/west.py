@@ -13,6 +13,7 @@ from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction import _util
 from gmjax.reduction._greedy import finish, greedy_steps, init_state
 from gmjax.reduction.base import ReductionInfo, Stateless
 
@@ -52,6 +53,7 @@ def _west(gm, num_out, threshold, capacity, metric, enhanced):
     return finish(gm, s, n_steps, capacity)
 
 
+@_util.guard_nan(threshold=float("inf"))
 def west(
     gm: GaussianMixture,
     num_out: int,

@@ -112,6 +112,7 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
     )
 
 
+@_util.guard_nan(threshold=float("inf"))
 def williams(
     gm: GaussianMixture,
     num_out: int,
