@@ -22,6 +22,7 @@ from gmjax import montecarlo as montecarlo
 from gmjax import pcrb as pcrb
 from gmjax import scenarios as scenarios
 from gmjax import tune as tune
+from gmjax import multitarget as multitarget
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
 
@@ -42,5 +43,6 @@ __all__ = [
     "pcrb",
     "scenarios",
     "tune",
+    "multitarget",
     "__version__",
 ]
