@@ -17,7 +17,8 @@ def _dist(x, y):
 
 def ospa_ref(x, y, *, c: float, p: float) -> float:
     """OSPA (Schuhmacher et al. 2008, eq 3) between point sets ``x (n_x, d)`` and ``y (n_y, d)``."""
-    x, y = np.asarray(x, float).reshape(-1, np.shape(x)[-1]), np.asarray(y, float).reshape(-1, np.shape(y)[-1])
+    x = np.asarray(x, float).reshape(-1, np.shape(x)[-1])
+    y = np.asarray(y, float).reshape(-1, np.shape(y)[-1])
     m, n = len(x), len(y)
     if m == 0 and n == 0:
         return 0.0
@@ -36,7 +37,8 @@ def gospa_ref(x, y, *, c: float, p: float) -> dict:
 
     Returns ``{"distance", "localisation", "missed", "false"}`` (the last three sum to distance^p).
     """
-    x, y = np.asarray(x, float).reshape(-1, np.shape(x)[-1]), np.asarray(y, float).reshape(-1, np.shape(y)[-1])
+    x = np.asarray(x, float).reshape(-1, np.shape(x)[-1])
+    y = np.asarray(y, float).reshape(-1, np.shape(y)[-1])
     half = c**p / 2.0
     if len(x) == 0 or len(y) == 0:
         missed, false = half * len(y), half * len(x)

@@ -212,9 +212,16 @@ def update_intensity(
     live = predicted.mask[:, None] & z_mask[None, :] & (w[:, None] > 0)
     safe_w = jnp.where(w > 0, w, 1.0)
     log_num = jnp.where(live, jnp.log(p_d) + jnp.log(safe_w)[:, None] + info.loglik, -jnp.inf)
+    # log-sum-exps guarded so that empty columns (padded rows, or no live component) and kappa = 0
+    # give neither NaN values nor NaN gradients
+    any_live = jnp.any(live, axis=0)  # (M,)
+    lse = jax.nn.logsumexp(jnp.where(any_live[None, :], log_num, 0.0), axis=0)
+    lse = jnp.where(any_live, lse, -jnp.inf)
     log_kappa = jnp.log(kappa)
-    log_den = jnp.logaddexp(log_kappa, jax.nn.logsumexp(log_num, axis=0))  # (M,)
-    w_det = jnp.where(live, jnp.exp(log_num - log_den[None, :]), 0.0)  # (K, M)
+    ok = any_live | (kappa > 0)
+    log_den = jnp.where(ok, jnp.logaddexp(jnp.where(ok, log_kappa, 0.0), jnp.where(ok, lse, 0.0)), -jnp.inf)
+    log_den = jnp.where(ok & ~any_live, log_kappa, log_den)  # (M,)
+    w_det = jnp.where(live, jnp.exp(jnp.where(live, log_num - log_den[None, :], -jnp.inf)), 0.0)  # (K, M)
     K, M = w_det.shape
     d = predicted.dim
     missed = GaussianMixture((1.0 - p_d) * w, predicted.means, predicted.covs, predicted.mask)
@@ -330,11 +337,9 @@ def soft_estimates(
 # ----------------------------------------------------------------------------- the filter
 
 
-def _as_noise(noise, dim: int, name: str):
+def _as_noise(noise, dim: int, name: str, dtype):
     if isinstance(noise, GaussianMixture):
-        if noise.dim != dim:
-            raise ValueError(f"{name}: dimension {noise.dim}, expected {dim}")
-        return noise
+        noise = gaussian_moments(noise)
     if isinstance(noise, (tuple, list)) and len(noise) == 2:
         mean, cov = np.asarray(noise[0], float), np.asarray(noise[1], float)
     else:
@@ -343,9 +348,12 @@ def _as_noise(noise, dim: int, name: str):
     if mean.shape != (dim,) or cov.shape != (dim, dim):
         raise ValueError(f"{name}: expected a ({dim},) mean and a ({dim}, {dim}) covariance, got "
                          f"{mean.shape} and {cov.shape}")
-    if not np.all(np.isfinite(cov)) or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0):
-        raise ValueError(f"{name}: covariance must be finite and positive definite")
-    return jnp.asarray(mean), jnp.asarray(cov)
+    if not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T):
+        raise ValueError(f"{name}: covariance must be finite and symmetric")
+    eig = np.linalg.eigvalsh(cov)
+    if np.any(eig < -1e-10 * max(1.0, float(np.max(np.abs(eig))))):
+        raise ValueError(f"{name}: covariance must be positive semi-definite (eigenvalues {eig})")
+    return jnp.asarray(mean, dtype), jnp.asarray(cov, dtype)
 
 
 def _check_prob(value, name, *, open_low=False):
@@ -461,8 +469,10 @@ def gm_phd(
         detection_prob=jnp.asarray(detection_prob, dtype),
         clutter_rate=jnp.asarray(clutter_rate, dtype),
         clutter_density=jnp.asarray(clutter_density, dtype),
-        process_noise=_as_noise(gaussian_moments(model.process_noise), d, "model.process_noise"),
-        measurement_noise=_as_noise(gaussian_moments(model.measurement_noise), m, "model.measurement_noise"),
+        process_noise=_as_noise(gaussian_moments(model.process_noise), d, "model.process_noise", dtype),
+        measurement_noise=_as_noise(
+            gaussian_moments(model.measurement_noise), m, "model.measurement_noise", dtype
+        ),
         reducer=reducer,
         extract_threshold=jnp.asarray(extract_threshold, dtype),
         truncation_tolerance=jnp.asarray(truncation_tolerance, dtype),
@@ -494,7 +504,8 @@ def gm_phd(
         post, cap_overflow = _fit(reduced, capacity)
         est = extract(post, params.extract_threshold, max_estimates=max_estimates)
         mean, cov = gmm.moments(post)
-        overflow = (heaviest_dropped > params.truncation_tolerance) | rinfo.overflow | cap_overflow | est.overflow
+        overflow = (heaviest_dropped > params.truncation_tolerance) | rinfo.overflow | cap_overflow
+        overflow = overflow | est.overflow
         flags = StepFlags(upd.repaired, overflow, ~jnp.isfinite(cardinality))
         extra = {
             "cardinality": cardinality,

@@ -30,7 +30,7 @@ from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction.base import EmptyState, make_info
-from gmjax.reduction.relax import soft_step, validate_mode
+from gmjax.reduction.relax import negligible_floor, soft_step, validate_mode
 
 __all__ = ["RelaxedVoMa", "relaxed_vo_ma"]
 
@@ -76,7 +76,11 @@ def relaxed_vo_ma(
     U = jnp.asarray(merge_threshold, dtype)
     g = jnp.where(gm.mask, soft_step(w - T, prune_temperature, mode=mode, strict=True), 0.0)
     a = g * w
-    alive = gm.mask & (g > 0)
+    # a relaxed gate keeps every component live; one whose kept weight is below rounding (eps^2 of the
+    # total) would only square its weight in the merge's derivative and underflow to a NaN gradient
+    floor = jnp.maximum(negligible_floor(prune_temperature, mode, dtype),
+                        negligible_floor(merge_temperature, mode, dtype)) * total
+    alive = gm.mask & (g > 0) & ~(a < floor)
     heaviest = jnp.argmax(jnp.where(gm.mask, w, -jnp.inf))
     rescue = ~jnp.any(alive) & jnp.any(gm.mask)  # as VoMa: a mixture is never emptied
     alive = jnp.where(rescue, jnp.arange(K) == heaviest, alive)

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmjax import gaussian
 from gmjax._types import Array, PRNGKey
 from gmjax.filters._core import gaussian_moments
 from gmjax.mixture import GaussianMixture, from_gaussian
@@ -124,8 +125,9 @@ def simulate(scenario: MultiTargetScenario, key: PRNGKey) -> MultiTargetSample:
     T = int(scenario.n_steps)
     q_mean, q_cov = gaussian_moments(model.process_noise)
     r_mean, r_cov = gaussian_moments(model.measurement_noise)
-    Lq = jnp.linalg.cholesky(q_cov.astype(dtype)) * scenario.truth_noise_scale
-    Lr = jnp.linalg.cholesky(r_cov.astype(dtype))
+    # singular process noises are common (the white-noise acceleration Q has rank 2): repaired factor
+    Lq = gaussian.safe_cholesky(q_cov.astype(dtype)).factor * scenario.truth_noise_scale
+    Lr = gaussian.safe_cholesky(r_cov.astype(dtype)).factor
     m = r_cov.shape[-1]
     lo, hi = (jnp.asarray(a, dtype) for a in scenario.region)
     births = jnp.asarray(scenario.birth_times, jnp.int32)
