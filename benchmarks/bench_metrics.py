@@ -81,7 +81,7 @@ def main(argv=None):
     rows = [
         ["gmjax jit(vmap(ise))", n_pairs, t_jax["compile_s"], t_jax["run_min_s"], jax_per_pair * 1e6, 1.0],
         ["NumPy broadcasting loop over pairs", n_pairs, 0.0, t_vec["run_min_s"], vec_per_pair * 1e6, vec_per_pair / jax_per_pair],
-        ["NumPy double loop (timed on %d pairs, scaled)" % n_np_loop, n_pairs, 0.0, per_pair_loop * n_pairs, per_pair_loop * 1e6, per_pair_loop / jax_per_pair],
+        [f"NumPy double loop (timed on {n_np_loop} pairs, scaled)", n_pairs, 0.0, per_pair_loop * n_pairs, per_pair_loop * 1e6, per_pair_loop / jax_per_pair],
     ]
     header = ["implementation", "pairs", "compile s", "run s (min)", "µs / pair", "time ratio vs gmjax"]
     md = (

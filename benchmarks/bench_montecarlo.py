@@ -30,9 +30,9 @@ from reference import gsf_np, pcm_numpy  # noqa: E402
 
 from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
+from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 
 N_U = 20
 
@@ -87,7 +87,7 @@ def main(argv=None):
     np_per_run = (time.perf_counter() - t0) / n_np
     print(f"NumPy reference: {np_per_run:.3f} s per run (timed on {n_np} runs), mean RMSE {np.mean(np_rmse):.3f}")
     same = monte_carlo(build_gsf(scenario.model, "ekf", configs["gmjax PCM-GSF (grid)"], capacity=N_U,
-                                 track_ise=False), scenario, n_np, key, progress=False)
+                                 track_ise=False), scenario, n_np, key, keep_runs=n_np, progress=False)
     gm_rmse = np.sqrt(same.scores.sq_error.mean(1))
     print(f"same {n_np} runs: per-run RMSE NumPy {np.round(np_rmse, 4)} vs gmjax (grid) {np.round(gm_rmse, 4)}")
 

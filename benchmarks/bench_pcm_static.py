@@ -26,7 +26,6 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
 from _common import RESULTS_DIR, markdown_table, time_jax, time_python, write_results  # noqa: E402
 from reference import pcm_numpy as ref  # noqa: E402
 

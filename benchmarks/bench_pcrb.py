@@ -41,10 +41,10 @@ from reference.pcrb_ref import (  # noqa: E402
     split_1d,
 )
 
-from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup  # noqa: E402
-from gmjax.scenarios.satellite_pass import satellite  # noqa: E402
 from gmjax.pcrb import build_pcrb_gmm, pcrb_mc  # noqa: E402
 from gmjax.quadrature import gauss_hermite, smolyak  # noqa: E402
+from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup  # noqa: E402
+from gmjax.scenarios.satellite_pass import satellite  # noqa: E402
 from gmjax.split import gauss_hermite_library  # noqa: E402
 
 PAPER = {

@@ -33,15 +33,15 @@ import numpy as np  # noqa: E402
 from _common import RESULTS_DIR, markdown_table, write_results  # noqa: E402
 from reference import agsf_np  # noqa: E402
 
-from gmjax.filters import build_sckf, build_ukf  # noqa: E402
-from gmjax.filters.agsf import build_agsf, build_gsckf, build_gsukf  # noqa: E402
-from gmjax.filters.pf import build_pf  # noqa: E402
+from gmjax import studies  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
+from gmjax.montecarlo import score_run, summarize  # noqa: E402
 from gmjax.scenarios.bearings_only import BEARINGS_SENSORS, bearings_only  # noqa: E402
 from gmjax.scenarios.gamma_system import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
-from gmjax.montecarlo import score_run, summarize  # noqa: E402
 
-FILTERS = ["UKF", "SCKF", "GSUKF", "GSCKF", "AGSSCKF", "PF"]
+# the filters of `gmjax study gamma` / `gmjax study bearings` (UKF, SCKF, GSUKF, GSCKF, AGSSCKF, PF)
+FACTORIES = studies.STUDIES["gamma"]().filters
+FILTERS = list(FACTORIES)
 
 # Tables 2 and 3 of seed 001 (ARMSE, ANEES, time per step in ms, MATLAB).
 PAPER = {
@@ -56,20 +56,9 @@ PAPER = {
 }
 
 
-def build(name, model):
-    if name == "UKF":
-        return build_ukf(model)  # kappa = 3 - n (default)
-    if name == "SCKF":
-        return build_sckf(model)
-    if name == "GSUKF":
-        return build_gsukf(model)
-    if name == "GSCKF":
-        return build_gsckf(model)
-    if name == "AGSSCKF":
-        return build_agsf(model)
-    if name == "PF":
-        return build_pf(model, 1000, regularized=True)
-    raise ValueError(name)
+def build(name, scenario):
+    """Filter ``name`` for ``scenario``, built exactly as ``gmjax.studies`` builds it."""
+    return FACTORIES[name](scenario)
 
 
 def monte_carlo_mapped(filt, scenario, keys):
@@ -120,7 +109,7 @@ def run_table(table, n_runs, n_steps, key, with_window, pf_runs):
     results = {}
     for name in FILTERS:
         ks = keys[:pf_runs] if name == "PF" else keys
-        res = monte_carlo_mapped(build(name, scenario.model), scenario, ks)
+        res = monte_carlo_mapped(build(name, scenario), scenario, ks)
         results[name] = res
         print(f"  {name:8s} ARMSE {res.position_armse:.4g}  ANEES {res.anees:.4g}  "
               f"{1e3 * res.run_s / (res.n_runs * n_steps):.3f} ms/step  compile {res.compile_s:.1f} s", flush=True)
@@ -128,7 +117,7 @@ def run_table(table, n_runs, n_steps, key, with_window, pf_runs):
     if with_window:  # the paper's Table 2 window k <= 30 (timed on a 30-step scenario)
         sc30 = gamma_system(n_steps=30)
         for name in FILTERS:
-            res30 = monte_carlo_mapped(build(name, sc30.model), sc30, keys[:pf_runs] if name == "PF" else keys)
+            res30 = monte_carlo_mapped(build(name, sc30), sc30, keys[:pf_runs] if name == "PF" else keys)
             window[name] = 1e3 * res30.run_s / (res30.n_runs * 30)
     return scenario, results, window
 

@@ -34,9 +34,9 @@ from gmjax import metrics  # noqa: E402
 from gmjax.filters.base import run  # noqa: E402
 from gmjax.filters.imm import build_imm_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.scenarios import manoeuvring_target  # noqa: E402
 from gmjax.montecarlo import RunScores, summarize  # noqa: E402
 from gmjax.reduction import GMRC, GMRCM, PruneTop, Runnalls  # noqa: E402
+from gmjax.scenarios import manoeuvring_target  # noqa: E402
 
 REDUCERS = ("GMRC", "Runnalls", "GMRCM", "GMRP")
 

@@ -35,7 +35,6 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
 from _common import RESULTS_DIR, block, markdown_table, write_results  # noqa: E402
 from reference.bank_np import bank_filter_np  # noqa: E402
 

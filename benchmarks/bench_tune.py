@@ -43,10 +43,10 @@ from reference import gsf_np, pcm_numpy  # noqa: E402
 from gmjax import tune as gt  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.scenarios.jump_system import JUMP_PRIOR, JUMP_PROCESS_NOISE, jump_system  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
 from gmjax.reduction.relax import soft_split_gate  # noqa: E402
+from gmjax.scenarios.jump_system import JUMP_PRIOR, JUMP_PROCESS_NOISE, jump_system  # noqa: E402
 
 TRAIN_SEED = 1
 HELDOUT_SEED = 20_261_122  # never used for training
@@ -136,7 +136,8 @@ def pcm_section(args) -> dict:
     for name, red in configs.items():
         print(f"[PCM-GSF] held-out: {name}, {args.eval_runs} runs")
         results[name] = monte_carlo(build_gsf(sc.model, "ekf", red, capacity=N_U, track_ise=False), sc,
-                                    args.eval_runs, key, keep_trajectories=name.startswith("tuned"), progress=False)
+                                    args.eval_runs, key, keep_runs=args.eval_runs,
+                                    keep_trajectories=name.startswith("tuned"), progress=False)
     rows = compare(results, list(configs)[0], list(configs)[1])
 
     # NumPy reference: the tuned hard PCM-GSF on the first held-out runs
@@ -209,7 +210,8 @@ def agsf_section(args) -> dict | None:
     results = {}
     for name, cfg in configs.items():
         print(f"[AGSSCKF] held-out: {name}, {args.eval_runs} runs")
-        results[name] = monte_carlo(build_agsf(sc.model, cfg), sc, args.eval_runs, key, progress=False)
+        results[name] = monte_carlo(build_agsf(sc.model, cfg), sc, args.eval_runs, key, keep_runs=args.eval_runs,
+                                    progress=False)
     rows = compare(results, list(configs)[0], list(configs)[1])
     h = res.history
     return {

@@ -8,25 +8,35 @@ Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`
 :mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`scenarios` (the papers' systems),
 :mod:`montecarlo`, :mod:`pcrb`,
 :mod:`tune` (differentiable threshold tuning), :mod:`studies`.
+
+Docstrings cite the five papers gmjax implements by equation number under the labels "seed 000" to
+"seed 004": seed 000 is Xu et al., PCM (IEEE Access); seed 001 Liu et al. 2014, AGSSCKF; seed 002
+Zhang et al. 2021, PCRBs from Gaussian mixtures; seed 003 Xu et al. 2019, GMRCM; seed 004 Pishdad &
+Labeau 2014, the active-cluster reduction. Full references: ``docs/references.md``.
 """
 
+from importlib import metadata as _metadata
+
+from gmjax import filters as filters
 from gmjax import gaussian as gaussian
 from gmjax import metrics as metrics
 from gmjax import mixture as mixture
-from gmjax import quadrature as quadrature
-from gmjax import split as split
-from gmjax import reduction as reduction
-from gmjax import filters as filters
 from gmjax import models as models
 from gmjax import montecarlo as montecarlo
 from gmjax import pcrb as pcrb
+from gmjax import quadrature as quadrature
+from gmjax import reduction as reduction
 from gmjax import scenarios as scenarios
+from gmjax import split as split
 from gmjax import tune as tune
 from gmjax import multitarget as multitarget
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("gmjax")
+except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0.0.0+unknown"
 
 __all__ = [
     "GaussianMixture",

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -79,20 +79,25 @@ def _score(full: GaussianMixture, approx: GaussianMixture) -> dict[str, jax.Arra
 
 def run(*, draws: int = 1000, seed: int = 0, out: Path = Path("gmjax_out"), plot: bool = True) -> int:
     """Run the study; print the tables; write ``out/default_study.json`` (and a PNG)."""
+    import gmjax
+
+    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
+        raise ValueError(f"draws: must be a positive int, got {draws!r}")
     out.mkdir(parents=True, exist_ok=True)
     key = jax.random.key(seed)
+    dtype = str(jnp.zeros(()).dtype)
     results = {}
-    print(f"gmjax {__import__('gmjax').__version__}: seed 000 static random cases, {draws} draws each, "
-          f"on {jax.devices()[0].platform.upper()}")
+    print(f"gmjax {gmjax.__version__} (JAX {jax.__version__}): seed 000 static random cases, {draws} draws "
+          f"each, seed {seed}, {dtype}, on {jax.devices()[0].platform.upper()}")
     first_draws = {}
     for case_key, case in zip(jax.random.split(key, len(CASES)), CASES):
         gms = draw_mixtures(case, case_key, draws)
         first_draws[case.name] = jax.tree_util.tree_map(lambda a: a[0], gms)
-        rows = {}
+        rows: dict[str, dict[str, Any]] = {}
         print(f"\ncase {case.name} ({case.n_components} components, 1-D)")
         print(f"{'approximation':38s} {'ISE mean ± std':>24s} {'NISE mean ± std':>24s} {'count':>7s} {'time s':>8s}")
         for name, fn in approximations(case).items():
-            scored = jax.jit(jax.vmap(lambda g: _score(g, fn(g))))
+            scored = jax.jit(jax.vmap(lambda g: _score(g, fn(g))))  # noqa: B023 (run in this iteration)
             t0 = time.perf_counter()
             res = jax.tree_util.tree_map(np.asarray, scored(gms))
             elapsed = time.perf_counter() - t0
@@ -102,7 +107,14 @@ def run(*, draws: int = 1000, seed: int = 0, out: Path = Path("gmjax_out"), plot
             print(f"{name:38s} {r['ise']['mean']:11.3e} ± {r['ise']['std']:10.3e} "
                   f"{r['nise']['mean']:11.3e} ± {r['nise']['std']:10.3e} {r['count']['mean']:7.1f} {elapsed:8.2f}")
         results[case.name] = rows
-    (out / "default_study.json").write_text(json.dumps({"draws": draws, "seed": seed, "cases": results}, indent=2))
+    from gmjax.montecarlo import json_safe
+
+    summary = {"draws": draws, "seed": seed, "dtype": dtype, "gmjax_version": gmjax.__version__,
+               "jax_version": jax.__version__,
+               "config": {"cases": [c._asdict() for c in CASES], "approximations": {
+                   c.name: list(approximations(c)) for c in CASES}},
+               "cases": results}
+    (out / "default_study.json").write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False))
     print(f"\nwrote {out / 'default_study.json'}")
     if plot:
         _plot(first_draws, out / "default_study.png")

@@ -8,9 +8,16 @@ the tree structure, so changing them recompiles), thresholds are ordinary fields
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import jax
+
+if TYPE_CHECKING:  # typing.dataclass_transform is Python 3.11+; type checkers know typing_extensions
+    from typing_extensions import dataclass_transform
+else:
+
+    def dataclass_transform(**kwargs):
+        return lambda decorator: decorator
 
 __all__ = ["pytree_dataclass", "static_field"]
 
@@ -23,6 +30,7 @@ def static_field(default: Any = dataclasses.MISSING, **kwargs: Any) -> Any:
     return dataclasses.field(default=default, metadata=metadata, **kwargs)
 
 
+@dataclass_transform(frozen_default=True)  # static_field(v) reads as an ordinary default v
 def pytree_dataclass(cls: type[T]) -> type[T]:
     """Decorate ``cls`` as a frozen dataclass registered as a pytree.
 
@@ -33,7 +41,7 @@ def pytree_dataclass(cls: type[T]) -> type[T]:
     (``register_dataclass`` compares only the static values).
     """
     cls = dataclasses.dataclass(frozen=True)(cls)
-    fields = dataclasses.fields(cls)
+    fields = dataclasses.fields(cast(Any, cls))  # a dataclass from the line above
     data_names = tuple(f.name for f in fields if not f.metadata.get("static", False))
     meta_names = tuple(f.name for f in fields if f.metadata.get("static", False))
 

@@ -6,9 +6,10 @@ T: time steps, N: Monte Carlo runs, n: samples / sigma points.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import jax
+import jax.typing
 
 Array = jax.Array
 ArrayLike = Any  # anything jnp.asarray accepts
@@ -21,3 +22,6 @@ Covs = Array  # (K, d, d)
 Mask = Array  # (K,) bool
 Vector = Array  # (d,)
 Matrix = Array  # (d, d)
+
+DTypeLike = jax.typing.DTypeLike  # a dtype or anything jnp.dtype accepts
+StepFn = Callable[[Array, Array], Array]  # (x (d,), t) -> (d,) or (m,): a model's f or h

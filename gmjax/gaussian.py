@@ -161,12 +161,33 @@ def inv_spd(cov: ArrayLike) -> Matrix:
     return symmetrize(cho_solve((L, True), eye))
 
 
+def _check_dims(**arrays: ArrayLike) -> None:
+    """Static check that points ``(..., d)`` and covariances ``(..., d, d)`` share ``d``.
+
+    Names ending in ``cov`` are covariances. Raises ``ValueError`` naming the arguments.
+    """
+    dims = {}
+    for name, a in arrays.items():
+        shape = jnp.shape(a)
+        if name.startswith("cov"):
+            if len(shape) < 2 or shape[-1] != shape[-2]:
+                raise ValueError(f"{name}: expected a square (d, d) matrix, got shape {shape}")
+        elif len(shape) < 1:
+            raise ValueError(f"{name}: expected a (d,) vector, got a scalar")
+        dims[name] = shape[-1]
+    if len(set(dims.values())) > 1:
+        raise ValueError(
+            "dimension mismatch: " + ", ".join(f"{n} has d={v}" for n, v in dims.items())
+        )
+
+
 def mahalanobis_sq(x: ArrayLike, mean: ArrayLike, cov: ArrayLike) -> Scalar:
     """Squared Mahalanobis distance ``(x - m)^T P^{-1} (x - m)``.
 
     Args:
         x: ``(d,)`` point. mean: ``(d,)``. cov: ``(d, d)``.
     """
+    _check_dims(x=x, mean=mean, cov=cov)
     L = _chol(cov)
     r = solve_lower(L, jnp.asarray(x) - jnp.asarray(mean))
     return jnp.sum(r * r)
@@ -185,6 +206,7 @@ def logpdf(x: ArrayLike, mean: ArrayLike, cov: ArrayLike) -> Scalar:
     Args:
         x: ``(d,)`` point. mean: ``(d,)``. cov: ``(d, d)``.
     """
+    _check_dims(x=x, mean=mean, cov=cov)
     L = _chol(cov)
     d = L.shape[-1]
     r = solve_lower(L, jnp.asarray(x) - jnp.asarray(mean))
@@ -204,6 +226,7 @@ def log_product_normalizer(
     ``P1 + P2`` is positive definite whenever both inputs are, so no jitter repair is attempted:
     this is the inner kernel of every ISE and runs ``K·L`` times per mixture pair.
     """
+    _check_dims(mean1=mean1, cov1=cov1, mean2=mean2, cov2=cov2)
     S = symmetrize(jnp.asarray(cov1) + jnp.asarray(cov2))
     L = _cholesky(S)
     d = L.shape[-1]
@@ -225,6 +248,7 @@ def kl_divergence(
 
     ``0.5 * [tr(P2^{-1} P1) + (m2 - m1)^T P2^{-1} (m2 - m1) - d + log det P2 - log det P1]``.
     """
+    _check_dims(mean1=mean1, cov1=cov1, mean2=mean2, cov2=cov2)
     L1 = _chol(cov1)
     L2 = _chol(cov2)
     d = L1.shape[-1]
@@ -286,7 +310,7 @@ def spd_logpdf(x: jax.Array, m: jax.Array, P: jax.Array) -> jax.Array:
     return -0.5 * (d * _LOG_2PI + spd_logdet(P) + spd_inv_quad(x - m, P))
 
 
-def spd_kl(m1, P1, m2, P2) -> jax.Array:
+def spd_kl(m1: Array, P1: Array, m2: Array, P2: Array) -> jax.Array:
     """``KL(N(m1, P1) || N(m2, P2))`` broadcast over leading axes."""
     d = P1.shape[-1]
     P2i = spd_inv(P2)
@@ -294,7 +318,7 @@ def spd_kl(m1, P1, m2, P2) -> jax.Array:
     return 0.5 * (tr + spd_inv_quad(m2 - m1, P2) - d + spd_logdet(P2) - spd_logdet(P1))
 
 
-def moment_merge_pair(w1, m1, P1, w2, m2, P2):
+def moment_merge_pair(w1: Array, m1: Array, P1: Array, w2: Array, m2: Array, P2: Array) -> tuple[Array, Array, Array]:
     """Moment-preserving merge of two components (seed 002 eqs 70–72 written with ``lambda_i``).
 
     ``W = w1 + w2``, ``l_i = w_i / W``, ``m = l1 m1 + l2 m2``,

@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian
-from gmjax.mixture import GaussianMixture, log_weights, logpdf, sample
 from gmjax._types import Array, ArrayLike, PRNGKey
+from gmjax.mixture import GaussianMixture, check_same_dim, log_weights, logpdf, sample
 
 __all__ = [
     "cross_overlap",
@@ -35,7 +35,9 @@ def log_cross_overlap(a: GaussianMixture, b: GaussianMixture) -> Array:
     """``(K, L)`` matrix of ``log ∫ N_i^a N_j^b = log N(m_i; m_j, P_i + P_j)``; ``-inf`` on padding.
 
     Uses the broadcasting :func:`gmjax.gaussian.spd_logpdf` (closed forms for ``d <= 2``); padded
-    slots are given identity covariances first, so their (discarded) values stay finite.
+    slots are given identity covariances first, so their (discarded) values stay finite. Every
+    pairwise distance here (ISE, NISE, L2) goes through this function, which raises ``ValueError``
+    naming ``a, b`` when the mixtures live in different dimensions.
     """
     _check_same_dim(a, b)
     eye = jnp.eye(a.dim, dtype=a.covs.dtype)
@@ -47,10 +49,7 @@ def log_cross_overlap(a: GaussianMixture, b: GaussianMixture) -> Array:
 
 
 def _check_same_dim(a: GaussianMixture, b: GaussianMixture) -> None:
-    if a.means.shape[-1] != b.means.shape[-1]:
-        raise ValueError(
-            f"b: mixtures of different state dimensions ({a.means.shape[-1]} and {b.means.shape[-1]})"
-        )
+    check_same_dim(a, b)
 
 
 def cross_overlap(a: GaussianMixture, b: GaussianMixture) -> Array:
@@ -102,6 +101,7 @@ def kl_mc_with_stderr(
     a: GaussianMixture, b: GaussianMixture, key: PRNGKey, n: int
 ) -> tuple[Array, Array]:
     """:func:`kl_mc` and its Monte Carlo standard error."""
+    check_same_dim(a, b)
     la = log_weights(a) - jax.scipy.special.logsumexp(log_weights(a))
     lb = log_weights(b) - jax.scipy.special.logsumexp(log_weights(b))
     a_n = a._replace(weights=jnp.exp(la))
@@ -111,9 +111,30 @@ def kl_mc_with_stderr(
     return jnp.mean(diff), jnp.std(diff) / jnp.sqrt(n)
 
 
+def _check_state_arrays(estimates: Array, truths: Array) -> None:
+    if estimates.ndim == 0 or truths.ndim == 0 or estimates.shape[-1] != truths.shape[-1]:
+        raise ValueError(
+            f"estimates, truths: expected (..., d) arrays with the same d, got {estimates.shape} and "
+            f"{truths.shape}"
+        )
+    try:
+        jnp.broadcast_shapes(estimates.shape, truths.shape)
+    except ValueError:
+        raise ValueError(
+            f"estimates, truths: shapes {estimates.shape} and {truths.shape} do not broadcast"
+        ) from None
+
+
 def squared_error(estimates: ArrayLike, truths: ArrayLike) -> Array:
-    """``||x̂ - x||^2`` summed over the last (state) axis."""
-    e = jnp.asarray(estimates) - jnp.asarray(truths)
+    """``||x̂ - x||^2`` summed over the last (state) axis.
+
+    Raises:
+        ValueError: ``estimates`` and ``truths`` with different state dimensions or shapes that
+            do not broadcast.
+    """
+    estimates, truths = jnp.asarray(estimates), jnp.asarray(truths)
+    _check_state_arrays(estimates, truths)
+    e = estimates - truths
     return jnp.sum(e * e, axis=-1)
 
 
@@ -133,12 +154,21 @@ def nees(estimates: ArrayLike, covs: ArrayLike, truths: ArrayLike) -> Array:
 
     Args:
         estimates, truths: ``(..., d)``. covs: ``(..., d, d)``. Returns ``(...)``.
+
+    Raises:
+        ValueError: shapes that do not fit together, naming the argument.
     """
     estimates = jnp.asarray(estimates)
     truths = jnp.asarray(truths)
     covs = jnp.asarray(covs)
+    if estimates.ndim == 0 or truths.shape != estimates.shape:
+        raise ValueError(
+            f"estimates, truths: expected the same (..., d) shape, got {estimates.shape} and {truths.shape}"
+        )
     batch = estimates.shape[:-1]
     d = estimates.shape[-1]
+    if covs.shape != batch + (d, d):
+        raise ValueError(f"covs: expected shape {batch + (d, d)} to match estimates {estimates.shape}, got {covs.shape}")
     f = jax.vmap(gaussian.mahalanobis_sq)
     out = f(truths.reshape(-1, d), estimates.reshape(-1, d), covs.reshape(-1, d, d))
     return out.reshape(batch)

@@ -19,13 +19,15 @@ import numpy as np
 from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
-from gmjax._types import Array, ArrayLike, Covs, Mask, Means, Matrix, PRNGKey, Vector, Weights
+from gmjax._types import Array, ArrayLike, Covs, DTypeLike, Mask, Matrix, Means, PRNGKey, Vector, Weights
 
 _LOG_2PI = 1.8378770664093453
 
 __all__ = [
     "GaussianMixture",
     "check",
+    "check_points",
+    "check_same_dim",
     "sanitize",
     "log_weights",
     "logpdf",
@@ -86,8 +88,8 @@ class GaussianMixture(NamedTuple):
         capacity: int | None = None,
         *,
         normalize: bool = True,
-        dtype=None,
-    ) -> "GaussianMixture":
+        dtype: DTypeLike | None = None,
+    ) -> GaussianMixture:
         """Validate concrete arrays and build a padded mixture (the API boundary).
 
         Args:
@@ -99,11 +101,19 @@ class GaussianMixture(NamedTuple):
             normalize: divide the weights by their sum.
             dtype: floating dtype (default: the JAX default float).
 
+        The values are validated twice: as given (in float64), and after the cast to ``dtype``,
+        so a dtype that cannot hold them is refused instead of silently producing inf, 0 or a
+        singular covariance.
+
         Raises:
             ValueError: naming the field and offending index on NaN/inf, negative or all-zero
-                weights, non-symmetric or non-PD covariances, mismatched shapes, or
-                ``capacity < n``.
+                weights, non-symmetric or non-PD covariances, mismatched shapes,
+                ``capacity < n``, a non-floating ``dtype``, or values that ``dtype`` cannot hold
+                (a mean or weight that overflows, a positive weight that underflows to 0, a
+                covariance that is no longer positive definite after the cast), e.g.
+                ``"covs: component 0 is not positive definite in float32"``.
         """
+        dtype = _float_dtype(dtype)
         w = np.asarray(weights, dtype=np.float64)
         m = np.asarray(means, dtype=np.float64)
         P = np.asarray(covs, dtype=np.float64)
@@ -127,17 +137,19 @@ class GaussianMixture(NamedTuple):
         if K < n:
             raise ValueError(f"capacity: {K} is smaller than the number of components {n}")
         _validate_components(w, m, P, np.ones(n, bool))
-        if normalize:
+        if normalize:  # scaled first, so huge weights ([1e308, 1e308]) do not overflow the sum
+            w = w / w.max()
             w = w / w.sum()
-        dtype = jnp.zeros(()).dtype if dtype is None else dtype
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        w, m, P = _cast_checked(w, m, P, dtype)
         mask = np.zeros(K, bool)
         mask[:n] = True
-        W = np.zeros(K)
+        W = np.zeros(K, dtype)
         W[:n] = w
-        M = np.zeros((K, d))
+        M = np.zeros((K, d), dtype)
         M[:n] = m
-        C = np.broadcast_to(np.eye(d), (K, d, d)).copy()
-        C[:n] = 0.5 * (P + np.swapaxes(P, -1, -2))
+        C = np.broadcast_to(np.eye(d, dtype=dtype), (K, d, d)).copy()
+        C[:n] = P
         return cls(
             jnp.asarray(W, dtype), jnp.asarray(M, dtype), jnp.asarray(C, dtype), jnp.asarray(mask)
         )
@@ -149,7 +161,7 @@ class GaussianMixture(NamedTuple):
         means: ArrayLike,
         covs: ArrayLike,
         mask: ArrayLike | None = None,
-    ) -> "GaussianMixture":
+    ) -> GaussianMixture:
         """Build a mixture inside traced code (no validation); padded slots are sanitised."""
         weights = jnp.asarray(weights)
         mask = jnp.ones(weights.shape, bool) if mask is None else jnp.asarray(mask, bool)
@@ -168,44 +180,89 @@ def from_gaussian(mean: ArrayLike, cov: ArrayLike, capacity: int = 1) -> Gaussia
     return GaussianMixture(weights, means, covs, mask)
 
 
-def _validate_components(w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray) -> None:
+def _float_dtype(dtype) -> np.dtype:
+    """The floating dtype a mixture will hold (``None``: JAX's default float), as JAX stores it."""
+    if dtype is None:
+        return np.dtype(jnp.zeros(()).dtype)
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"dtype: {dtype!r} is not a dtype") from None
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise ValueError(f"dtype: a mixture needs a floating dtype (float32 or float64), got {dt}")
+    return np.dtype(jax.dtypes.canonicalize_dtype(dt))  # float64 is float32 unless x64 is enabled
+
+
+def _cast_checked(w: np.ndarray, m: np.ndarray, P: np.ndarray, dtype: np.dtype):
+    """Cast the validated float64 arrays to ``dtype`` and validate what ``dtype`` holds.
+
+    Raises:
+        ValueError: naming the field, index and dtype when a value overflows, a positive weight
+            underflows to 0, the weights' sum overflows, or a covariance stops being PD.
+    """
+    name = np.dtype(dtype).name
+    with np.errstate(over="ignore", under="ignore"):
+        wc, mc, Pc = (np.asarray(a, dtype) for a in (w, m, P))
+    held = [np.asarray(a, np.float64) for a in (wc, mc, Pc)]  # exactly the values dtype holds
+    for field, arr in zip(("weights", "means", "covs"), held):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            idx = int(np.argwhere(bad.reshape(arr.shape[0], -1).any(axis=1))[0, 0])
+            raise ValueError(f"{field}: component {idx} overflows {name} (its values do not fit)")
+    lost = np.flatnonzero((w > 0) & (held[0] == 0))
+    if lost.size:
+        raise ValueError(f"weights: weight {w[lost[0]]:g} at index {int(lost[0])} underflows to 0 in {name}")
+    with np.errstate(over="ignore"):
+        total = np.sum(wc)
+    if not np.isfinite(total):
+        raise ValueError(f"weights: their sum overflows {name} (normalize them or use a wider dtype)")
+    _validate_components(*held, np.ones(w.shape[0], bool), where=f" in {name}")
+    return wc, mc, Pc
+
+
+def _validate_components(
+    w: np.ndarray, m: np.ndarray, P: np.ndarray, mask: np.ndarray, where: str = ""
+) -> None:
     for name, arr in (("weights", w), ("means", m), ("covs", P)):
         bad = ~np.isfinite(arr)
         if bad.any():
             idx = int(np.argwhere(bad.reshape(arr.shape[0], -1).any(axis=1))[0, 0])
-            raise ValueError(f"{name}: non-finite value (NaN or inf) in component {idx}")
+            raise ValueError(f"{name}: non-finite value (NaN or inf) in component {idx}{where}")
     neg = np.flatnonzero(w < 0)
     if neg.size:
         raise ValueError(f"weights: negative weight {w[neg[0]]:g} at index {int(neg[0])}")
     if not mask.any():
         raise ValueError("mask: no live component (all-False mask)")
     if not (w[mask] > 0).any():
-        raise ValueError("weights: all live weights are zero")
+        raise ValueError(f"weights: all live weights are zero{where}")
     d = m.shape[-1]
     for k in np.flatnonzero(mask):
         Pk = P[k]
         scale = max(np.abs(Pk).max(), 1e-300)
         if not np.allclose(Pk, Pk.T, rtol=1e-8, atol=1e-10 * scale):
-            raise ValueError(f"covs: component {int(k)} is not symmetric")
+            raise ValueError(f"covs: component {int(k)} is not symmetric{where}")
         try:
             np.linalg.cholesky(Pk)
         except np.linalg.LinAlgError:
-            raise ValueError(f"covs: component {int(k)} is not positive definite") from None
+            raise ValueError(f"covs: component {int(k)} is not positive definite{where}") from None
         if d and np.linalg.eigvalsh(Pk)[0] <= 0:
-            raise ValueError(f"covs: component {int(k)} is not positive definite")
+            raise ValueError(f"covs: component {int(k)} is not positive definite{where}")
 
 
 def check(gm: GaussianMixture) -> GaussianMixture:
     """Validate a concrete mixture eagerly; return it unchanged.
 
     Raises:
-        ValueError: naming the field and index: shapes that disagree, a non-boolean or all-False
-            mask, NaN/inf, negative or all-zero live weights, non-symmetric or non-PD live
+        ValueError: naming the field and index: a non-floating dtype, shapes that disagree, a
+            non-boolean or all-False mask, NaN/inf, negative or all-zero live weights, non-symmetric or non-PD live
             covariances, or padded slots that are not (0, 0, I).
     """
     if not isinstance(gm, GaussianMixture):
         raise ValueError(f"gm: expected a GaussianMixture, got {type(gm).__name__}")
     w, m, P, mask = (np.asarray(a) for a in gm)
+    for name, arr in (("weights", w), ("means", m), ("covs", P)):
+        if not jnp.issubdtype(arr.dtype, jnp.floating):
+            raise ValueError(f"{name}: a mixture needs a floating dtype (float32 or float64), got {arr.dtype}")
     if w.ndim != 1:
         raise ValueError(f"weights: expected shape (K,), got {w.shape} (batch with vmap, not inside)")
     K = w.shape[0]
@@ -250,9 +307,43 @@ def log_weights(gm: GaussianMixture) -> Weights:
     return jnp.where(live, jnp.log(jnp.where(live, gm.weights, 1.0)), -jnp.inf)
 
 
-def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
-    """``log N(x; m_k, P_k)`` for every slot: ``(K,)`` for ``x`` of shape ``(d,)``, ``(n, K)`` for ``(n, d)``."""
+def check_points(gm: GaussianMixture, x: ArrayLike, name: str = "x") -> Array:
+    """``x`` as one point ``(d,)`` or ``n`` points ``(n, d)`` of ``gm``'s dimension (static check).
+
+    For a 1-D mixture a vector ``(n,)`` with ``n > 1`` is refused as ambiguous (``n`` points or
+    one point of the wrong dimension?): pass ``x[:, None]`` for ``n`` points.
+
+    Raises:
+        ValueError: naming ``name``, when the shape is neither ``(d,)`` nor ``(n, d)``.
+    """
     x = jnp.asarray(x)
+    d = gm.dim
+    if x.ndim not in (1, 2) or x.shape[-1] != d:
+        hint = f"; for {x.shape[0]} points of a 1-D mixture pass shape ({x.shape[0]}, 1)" if (
+            d == 1 and x.ndim == 1) else ""
+        raise ValueError(
+            f"{name}: expected one point ({d},) or points (n, {d}) of the {d}-D mixture, got shape "
+            f"{x.shape}{hint}"
+        )
+    return x
+
+
+def check_same_dim(a: GaussianMixture, b: GaussianMixture, names: tuple[str, str] = ("a", "b")) -> None:
+    """Raise ``ValueError`` naming both arguments when two mixtures live in different dimensions."""
+    if a.dim != b.dim:
+        raise ValueError(
+            f"{names[0]}, {names[1]}: mixtures of different dimensions ({names[0]} is {a.dim}-D, "
+            f"{names[1]} is {b.dim}-D)"
+        )
+
+
+def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
+    """``log N(x; m_k, P_k)`` for every slot: ``(K,)`` for ``x`` of shape ``(d,)``, ``(n, K)`` for ``(n, d)``.
+
+    Raises:
+        ValueError: ``x`` of another shape (see :func:`check_points`).
+    """
+    x = check_points(gm, x)
     factors = jax.vmap(lambda P: gaussian.safe_cholesky(P).factor)(gm.covs)  # once per component
     half_logdet = jnp.sum(jnp.log(jnp.diagonal(factors, axis1=-2, axis2=-1)), axis=-1)
     d = gm.dim
@@ -265,12 +356,16 @@ def component_logpdfs(gm: GaussianMixture, x: ArrayLike) -> Array:
 
 
 def logpdf(gm: GaussianMixture, x: ArrayLike) -> Array:
-    """Mixture log-density (weights used as stored): ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``."""
+    """Mixture log-density (weights used as stored): ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``.
+
+    For a 1-D mixture ``x`` of shape ``(n,)``, ``n > 1``, is refused (pass ``(n, 1)``); any other
+    shape raises ``ValueError`` naming ``x``.
+    """
     return logsumexp(component_logpdfs(gm, x) + log_weights(gm), axis=-1)
 
 
 def pdf(gm: GaussianMixture, x: ArrayLike) -> Array:
-    """Mixture density: ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)``."""
+    """Mixture density: ``()`` for ``x`` ``(d,)``, ``(n,)`` for ``(n, d)`` (shapes as :func:`logpdf`)."""
     return jnp.exp(logpdf(gm, x))
 
 
@@ -342,26 +437,56 @@ def sample(gm: GaussianMixture, key: PRNGKey, n: int) -> Array:
 
 
 def marginal(gm: GaussianMixture, dims: Sequence[int]) -> GaussianMixture:
-    """Marginal mixture over the state dimensions ``dims`` (static)."""
-    dims = jnp.asarray(dims)
+    """Marginal mixture over the state dimensions ``dims`` (static, distinct, in ``[-d, d)``).
+
+    Raises:
+        ValueError: naming ``dims``: empty, out of range, repeated or not integers.
+    """
+    d = gm.dim
+    try:
+        idx = np.asarray(dims)
+    except Exception:  # a traced array: dims must be static
+        raise ValueError("dims: must be static integers (a list or tuple), not a traced array") from None
+    idx = idx.reshape(-1) if idx.ndim == 0 else idx
+    if idx.ndim != 1 or idx.size == 0 or not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"dims: expected a non-empty sequence of integers, got {dims!r}")
+    if np.any((idx < -d) | (idx >= d)):
+        raise ValueError(f"dims: {list(idx.tolist())} out of range for a {d}-D mixture (valid: 0..{d - 1})")
+    if np.unique(idx % d).size != idx.size:
+        raise ValueError(f"dims: repeated dimension in {list(idx.tolist())} (the covariance would be singular)")
+    dims = jnp.asarray(idx % d)
     return GaussianMixture(gm.weights, gm.means[:, dims], gm.covs[:, dims][:, :, dims], gm.mask)
 
 
 def affine(gm: GaussianMixture, A: ArrayLike, b: ArrayLike | None = None) -> GaussianMixture:
     """Distribution of ``A x + b`` for ``x ~ gm``: means ``A m_k + b``, covariances ``A P_k A^T``.
 
-    ``A`` is ``(e, d)``; ``A`` must have full row rank for the result to be a proper mixture.
+    ``A`` is ``(e, d)``, ``b`` is ``(e,)``; ``A`` must have full row rank for the result to be a proper
+    mixture.
+
+    Raises:
+        ValueError: ``A`` not ``(e, d)`` or ``b`` not ``(e,)``, naming the argument.
     """
     A = jnp.asarray(A)
+    if A.ndim != 2 or A.shape[1] != gm.dim:
+        raise ValueError(f"A: expected shape (e, {gm.dim}) for a {gm.dim}-D mixture, got {A.shape}")
     means = gm.means @ A.T
     if b is not None:
-        means = means + jnp.asarray(b)
+        b = jnp.asarray(b)
+        if b.shape != (A.shape[0],):
+            raise ValueError(f"b: expected shape ({A.shape[0]},) to match A {A.shape}, got {b.shape}")
+        means = means + b
     covs = gaussian.symmetrize(jnp.einsum("ij,kjl,ml->kim", A, gm.covs, A))
     return sanitize(GaussianMixture(gm.weights, means, covs, gm.mask))
 
 
 def concat(a: GaussianMixture, b: GaussianMixture) -> GaussianMixture:
-    """Slots of ``a`` then slots of ``b`` (capacity ``K_a + K_b``); weights kept as they are."""
+    """Slots of ``a`` then slots of ``b`` (capacity ``K_a + K_b``); weights kept as they are.
+
+    Raises:
+        ValueError: mixtures of different dimensions.
+    """
+    check_same_dim(a, b)
     return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 

@@ -24,14 +24,14 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from gmjax import gaussian
-from gmjax._types import Array, ArrayLike
+from gmjax._types import Array, ArrayLike, DTypeLike
 
 __all__ = [
     "SigmaPoints",
@@ -80,7 +80,7 @@ def _as_rule(points: np.ndarray, wm: np.ndarray, wc: np.ndarray, dtype) -> Sigma
     )
 
 
-def cubature(d: int, *, dtype=None) -> SigmaPoints:
+def cubature(d: int, *, dtype: DTypeLike | None = None) -> SigmaPoints:
     """Third-degree spherical-radial cubature rule (seed 001 eq 7; Arasaratnam & Haykin 2009).
 
     Points ``sqrt(d) * [I_d, -I_d]`` (columns), equal weights ``1 / (2d)``.
@@ -105,7 +105,7 @@ def unscented(
     beta: float = 0.0,
     kappa: float | None = None,
     *,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> SigmaPoints:
     """Scaled unscented transform points (seed 002 eqs 27–29; Julier 2002, Wan & van der Merwe 2000).
 
@@ -175,7 +175,7 @@ def _check_positive_int(name: str, v) -> int:
     return int(v)
 
 
-def gauss_hermite(d: int, order: int, *, dtype=None) -> SigmaPoints:
+def gauss_hermite(d: int, order: int, *, dtype: DTypeLike | None = None) -> SigmaPoints:
     """Tensor-product Gauss–Hermite rule (seed 002 eqs 35–38).
 
     The 1-D rule with ``order`` nodes (zeros of the Hermite polynomial, normalised by eq 36) is
@@ -211,7 +211,7 @@ def _nodes_at_level(level: int, growth: str) -> int:
     return 2**level - 1
 
 
-def smolyak(d: int, level: int, growth: str = "linear", *, dtype=None) -> SigmaPoints:
+def smolyak(d: int, level: int, growth: str = "linear", *, dtype: DTypeLike | None = None) -> SigmaPoints:
     """Smolyak sparse-grid Gauss–Hermite rule (seed 002 §II-C, refs [31]–[33]).
 
     Smolyak's combination of 1-D Gauss–Hermite rules ``Q_l`` (level ``l >= 1``):
@@ -290,7 +290,7 @@ def transform(
     return mean + rule.points.astype(L.dtype) @ L.T
 
 
-def expectation(rule: SigmaPoints, fn, mean: ArrayLike, cov_or_chol: ArrayLike, *, is_chol=False):
+def expectation(rule: SigmaPoints, fn: Callable[[Array], Array], mean: ArrayLike, cov_or_chol: ArrayLike, *, is_chol: bool = False) -> Array:
     """``E[fn(x)]`` for ``x ~ N(mean, P)`` by the rule: ``sum_i wm_i fn(mean + L z_i)`` (eq 38).
 
     ``fn`` maps ``(d,)`` to any array; it is ``vmap``-ed over the points.

@@ -76,9 +76,9 @@ class SplitLibrary(NamedTuple):
         sigma: ``()`` common component standard deviation ``0 < sigma < 1``.
     """
 
-    weights: Array
-    means: Array
-    sigma: Array
+    weights: Array | np.ndarray
+    means: Array | np.ndarray
+    sigma: Array | np.ndarray
 
     @property
     def size(self) -> int:

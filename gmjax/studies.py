@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -19,11 +19,11 @@ from gmjax.filters import build_pf
 from gmjax.filters.base import Filter
 from gmjax.filters.gsf import build_gsf
 from gmjax.models import Scenario
+from gmjax.montecarlo import MonteCarloResult, json_safe, monte_carlo
 from gmjax.scenarios.bearings_only import bearings_only
 from gmjax.scenarios.gamma_system import gamma_system
 from gmjax.scenarios.glint_range_bearing import range_bearing
 from gmjax.scenarios.jump_system import jump_system
-from gmjax.montecarlo import MonteCarloResult, monte_carlo
 
 __all__ = ["Study", "STUDIES", "run_study", "format_table", "plot_study"]
 
@@ -154,7 +154,7 @@ _SEED001_NOTES = (
 )
 
 
-_SEED001_TABLES = {
+_SEED001_TABLES: dict[str, tuple[str, str, Callable[..., Scenario], tuple[float, ...], str]] = {
     # study name -> (table, title, scenario factory, paper ARMSE per filter, extra note)
     "gamma": ("seed001-table2", "seed 001 Table 2: 1-D system with Gamma process noise (eqs 44-47)",
               gamma_system, (33.25, 30.12, 23.22, 18.86, 18.05, 16.32),
@@ -185,8 +185,8 @@ def _seed001(name: str) -> Study:
 def _seed003(motion: str) -> Study:
     """Seed 003 §4.2: IMM (CS + CT) whose model filters are Gaussian sum filters, four reducers."""
     from gmjax.filters.imm import build_imm_gsf
-    from gmjax.scenarios import manoeuvring_target
     from gmjax.reduction import GMRC, GMRCM, PruneTop, Runnalls
+    from gmjax.scenarios import manoeuvring_target
 
     K = 8  # components kept per model filter (the paper's preset number is not given)
 
@@ -234,7 +234,7 @@ def run_study(
     chunk_size: int | None = None,
     progress: bool = True,
 ) -> dict[str, MonteCarloResult]:
-    """Run every (selected) filter of ``study`` on the same ``n_runs`` simulated runs."""
+    """Run every (selected) filter of ``study`` on the same ``n_runs`` simulated runs (a progress bar each)."""
     scenario = study.scenario()
     names = list(study.filters) if filters is None else filters
     unknown = [n for n in names if n not in study.filters]
@@ -242,10 +242,9 @@ def run_study(
         raise ValueError(f"filters: unknown {unknown}; {study.name} has {list(study.filters)}")
     results = {}
     for name in names:
-        if progress:
-            print(f"  {name}: compiling and running {n_runs} runs ...", flush=True)
         filt = study.filters[name](scenario)
-        results[name] = monte_carlo(filt, scenario, n_runs, key, chunk_size=chunk_size, progress=progress)
+        results[name] = monte_carlo(filt, scenario, n_runs, key, chunk_size=chunk_size,
+                                    progress=f"{study.name} {name}" if progress else False)
     return results
 
 
@@ -274,20 +273,30 @@ def format_table(study: Study, results: dict[str, MonteCarloResult]) -> str:
     return "\n".join(lines)
 
 
-def results_json(study: Study, results: dict[str, MonteCarloResult]) -> dict:
-    """JSON-ready summary (per-step curves included)."""
-    out = {"study": study.name, "table": study.table, "title": study.title, "notes": study.notes,
-           "paper": study.paper, "paper_runs": study.paper_runs, "filters": {}}
+def results_json(study: Study, results: dict[str, MonteCarloResult], *, seed: int | None = None) -> dict:
+    """JSON-ready summary (strict JSON: NaN / inf as ``null``), per-step curves included.
+
+    Records what a reader needs to trust and redo the numbers: dtype, seed and key, runs, chunk size,
+    devices, gmjax and JAX versions (``config``, and each filter's own ``config``).
+    """
+    import gmjax
+
+    first = next(iter(results.values()))
+    cfg = first.config or {}
+    out: dict[str, Any] = {"study": study.name, "table": study.table, "title": study.title, "notes": study.notes,
+           "paper": study.paper, "paper_runs": study.paper_runs,
+           "config": {"seed": seed, "key": cfg.get("key"), "dtype": cfg.get("dtype"), "n_runs": first.n_runs,
+                      "chunk_size": cfg.get("chunk_size"), "devices": cfg.get("devices"),
+                      "filters": list(results), "gmjax_version": gmjax.__version__,
+                      "jax_version": jax.__version__},
+           "filters": {}}
     for name, r in results.items():
         out["filters"][name] = {
-            "armse": r.armse, "armse_stderr": r.armse_stderr, "position_armse": r.position_armse,
-            "position_armse_stderr": r.position_armse_stderr, "position_rmse": r.position_rmse.tolist(),
-            "anees": r.anees, "median_nees": r.median_nees, "cep": r.cep, "mean_reducer_cost": r.mean_cost, "mean_ise": r.mean_ise,
+            **r.to_json(),
+            "mean_reducer_cost": r.mean_cost,
             "aeise": r.mean_cost if name in study.eise_filters else None,
-            "flag_rate": r.flag_rate, "n_runs": r.n_runs, "compile_s": r.compile_s, "run_s": r.run_s,
-            "rmse": r.rmse.tolist(), "nees": r.nees.tolist(), "n_components": r.n_components.tolist(),
         }
-    return out
+    return json_safe(out)
 
 
 def plot_study(study: Study, results: dict[str, MonteCarloResult], path: Path) -> Path | None:
@@ -318,24 +327,41 @@ def plot_study(study: Study, results: dict[str, MonteCarloResult], path: Path) -
 
 
 def study_main(name: str, n_runs: int, *, seed: int = 0, filters: list[str] | None = None,
-               out: Path = Path("gmjax_out"), as_json: bool = False, chunk_size: int | None = None) -> int:
-    """Run a study, print its table (or JSON), write ``out/NAME.json`` and ``out/NAME.png``."""
+               out: Path = Path("gmjax_out"), as_json: bool = False, chunk_size: int | None = None,
+               plot: bool = True, progress: bool | None = None) -> int:
+    """Run a study, print its table (or JSON), write ``out/NAME.json`` and (with ``plot``) ``out/NAME.png``.
+
+    The header names the dtype the study runs in (``jax_enable_x64`` decides; the ``gmjax`` command
+    turns it on unless ``--float32``); ``as_json`` prints strict JSON (``null`` for undefined numbers)
+    and nothing else on stdout.
+    """
+    import gmjax
+
     if name not in STUDIES:
         raise ValueError(f"study: unknown {name!r}; available: {sorted(STUDIES)}")
     study = STUDIES[name]()
+    unknown = [f for f in (filters or []) if f not in study.filters]
+    if unknown:
+        raise ValueError(f"filters: unknown {unknown}; {study.name} has {list(study.filters)}")
     out.mkdir(parents=True, exist_ok=True)
+    progress = (not as_json) if progress is None else progress
+    dtype = "float64" if jax.config.read("jax_enable_x64") else "float32"
+    if not as_json:
+        print(f"gmjax {gmjax.__version__} (JAX {jax.__version__}): study {name}, {n_runs} runs, seed {seed}, "
+              f"{dtype}, on {jax.devices()[0].platform.upper()}", flush=True)
     t0 = time.perf_counter()
     results = run_study(study, n_runs, jax.random.key(seed), filters=filters, chunk_size=chunk_size,
-                        progress=not as_json)
-    summary = results_json(study, results)
+                        progress=progress)
+    summary = results_json(study, results, seed=seed)
     summary["wall_s"] = time.perf_counter() - t0
-    (out / f"{name}.json").write_text(json.dumps(summary, indent=2))
+    text = json.dumps(summary, indent=2, allow_nan=False)
+    (out / f"{name}.json").write_text(text)
+    png = plot_study(study, results, out / f"{name}.png") if plot else None
     if as_json:
-        print(json.dumps(summary, indent=2))
+        print(text)
         return 0
     print()
     print(format_table(study, results))
-    png = plot_study(study, results, out / f"{name}.png")
     print(f"\nwrote {out / (name + '.json')}" + (f" and {png}" if png else ""))
     print(f"total wall time {summary['wall_s']:.1f} s")
     return 0

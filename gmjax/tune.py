@@ -9,18 +9,17 @@ relax their own decisions (a static ``mode`` and a traced temperature, DESIGN §
 soft memberships) and the soft split trigger of :mod:`gmjax.filters.agsf` are in
 :mod:`gmjax.reduction.relax` (:func:`soft_split_gate` is re-exported here).
 
-This module holds the loop. :func:`tune` simulates a batched Monte Carlo study with the current
-parameters, differentiates a loss (:func:`armse_loss`, :func:`anees_loss`, :func:`aeise_loss`,
-:func:`count_loss`, :func:`weighted_loss`) and applies an optax update to unconstrained parameters
-that are mapped into each parameter's valid range (:class:`Bounds`). :func:`study_scores` is the
-differentiable study (also over a ``params`` pytree that replaces ``filter.params``);
-:func:`plot_history` plots a run.
+This module holds the loop: :func:`tune` is an optax loop over :func:`gmjax.montecarlo.study_loss`, the
+differentiable Monte Carlo study (simulation, filtering and scoring of a batch of runs), with a loss
+(:func:`armse_loss`, :func:`anees_loss`, :func:`aeise_loss`, :func:`count_loss`, :func:`weighted_loss`,
+all from :mod:`gmjax.montecarlo` and re-exported here) and updates of unconstrained parameters mapped
+into each parameter's valid range (:class:`Bounds`). :func:`study_scores` / :func:`study_loss` also take
+a ``params`` pytree that replaces ``filter.params``; :func:`plot_history` plots a run.
 """
 
 from __future__ import annotations
 
 import math
-import sys
 import time
 from typing import Any, Callable, Mapping, NamedTuple
 
@@ -28,10 +27,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmjax import metrics
+from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter
 from gmjax.models import Scenario
+from gmjax.montecarlo import (
+    RunScores,
+    aeise_loss,
+    anees_loss,
+    armse_loss,
+    count_loss,
+    study_loss,
+    study_scores,
+    weighted_loss,
+)
 from gmjax.reduction.relax import soft_split_gate as soft_split_gate
 
 __all__ = [
@@ -41,6 +50,7 @@ __all__ = [
     "TuneHistory",
     "TuneResult",
     "study_scores",
+    "study_loss",
     "armse_loss",
     "anees_loss",
     "aeise_loss",
@@ -52,111 +62,9 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- differentiable studies
+# One implementation: the differentiable study and its losses live in gmjax.montecarlo.
 
-
-class TuneScores(NamedTuple):
-    """Differentiable per-run, per-step scores (leading axes ``(N, T)``).
-
-    Attributes:
-        sq_error, position_sq_error: squared estimation errors (full state / position components).
-        nees: normalised estimation error squared.
-        cost: the reducer's cost (PCM's EISE; 0 where none).
-        n_expected: expected live components after reduction (``info.reduction.aux["n_expected"]``
-            where the reducer reports it, else the live count).
-        flags: overflow / repaired covariance / degenerate update (bool).
-    """
-
-    sq_error: Array
-    position_sq_error: Array
-    nees: Array
-    cost: Array
-    n_expected: Array
-    flags: Array
-
-
-def _score(filter: Filter, scenario: Scenario, key: PRNGKey, params: Any = None) -> TuneScores:
-    from gmjax.montecarlo import filter_run
-
-    r = filter_run(filter, scenario, key, params)
-    truths, est, pos, infos = r.truths, r.estimates, r.position_dims, r.infos
-    T, dtype = truths.shape[0], truths.dtype
-    reduction = infos.reduction
-    n_exp = None if reduction is None else reduction.aux.get("n_expected")
-    if n_exp is None:
-        n_exp = infos.n_components
-    return TuneScores(
-        sq_error=metrics.squared_error(est, truths),
-        position_sq_error=metrics.squared_error(est[:, pos], truths[:, pos]),
-        nees=metrics.nees(est, r.covs, truths),
-        cost=jnp.zeros(T, dtype) if reduction is None else jnp.asarray(reduction.cost, dtype),
-        n_expected=jnp.asarray(n_exp, dtype),
-        flags=r.flags,
-    )
-
-
-def study_scores(filter: Filter, scenario: Scenario, n_runs: int, key: PRNGKey,
-                 params: Any = None) -> TuneScores:
-    """Simulate, filter and score ``n_runs`` runs (``vmap``; traceable and differentiable).
-
-    Run ``i`` uses ``jax.random.split(key, n_runs)[i]`` exactly as :func:`gmjax.monte_carlo` does, so
-    the same key gives the same runs in both.
-
-    Args:
-        filter: any :class:`~gmjax.filters.Filter`.
-        scenario: the :class:`~gmjax.models.Scenario` to simulate.
-        n_runs: static number of runs.
-        key: PRNG key.
-        params: a pytree replacing ``filter.params`` (default: ``filter.params``), e.g. with a traced
-            reducer threshold or noise covariance, to ``jax.grad`` / ``jax.vmap`` the study over it.
-
-    Returns:
-        :class:`TuneScores` with leading axes ``(n_runs, T)``.
-    """
-    keys = jax.random.split(key, n_runs)
-    return jax.vmap(lambda k: _score(filter, scenario, k, params))(keys)
-
-
-def armse_loss(*, position: bool = True) -> Callable[[TuneScores], Array]:
-    """ARMSE ``mean_t sqrt(mean_i e²_it)`` (seed 000 eq 44), of the position components by default."""
-
-    def loss(scores: TuneScores) -> Array:
-        sq = scores.position_sq_error if position else scores.sq_error
-        return jnp.mean(jnp.sqrt(jnp.mean(sq, axis=0)))
-
-    return loss
-
-
-def anees_loss(target: float) -> Callable[[TuneScores], Array]:
-    """``|ANEES - d|``: consistency (the ANEES of a consistent filter is the state dimension ``d``)."""
-
-    def loss(scores: TuneScores) -> Array:
-        return jnp.abs(jnp.mean(scores.nees) - target)
-
-    return loss
-
-
-def aeise_loss() -> Callable[[TuneScores], Array]:
-    """AEISE: the reducer's EISE (seed 000 eq 29) averaged over runs and steps."""
-    return lambda scores: jnp.mean(scores.cost)
-
-
-def count_loss() -> Callable[[TuneScores], Array]:
-    """Expected number of components after reduction, averaged over runs and steps (a cost)."""
-    return lambda scores: jnp.mean(scores.n_expected)
-
-
-def weighted_loss(*terms: tuple[float, Callable[[TuneScores], Array]]) -> Callable[[TuneScores], Array]:
-    """``Σ_i c_i loss_i``; e.g. ``weighted_loss((1.0, armse_loss()), (0.01, count_loss()))``."""
-    if not terms:
-        raise ValueError("terms: need at least one (weight, loss) pair")
-    for t in terms:
-        if not (isinstance(t, tuple) and len(t) == 2 and callable(t[1])):
-            raise ValueError(f"terms: expected (weight, loss) pairs, got {t!r}")
-
-    def loss(scores: TuneScores) -> Array:
-        return sum(float(c) * f(scores) for c, f in terms)
-
-    return loss
+TuneScores = RunScores  # 0.1 name of the per-run scores
 
 
 # ----------------------------------------------------------------------------- reparameterisation
@@ -178,6 +86,7 @@ class Bounds(NamedTuple):
     def to_constrained(self, u: Array) -> Array:
         lo, hi = self.low, self.high
         if self.log:
+            assert lo is not None and hi is not None  # a log bound has both ends (checked on construction)
             a, b = math.log(lo), math.log(hi)
             return jnp.exp(a + (b - a) * jax.nn.sigmoid(u))
         if lo is not None and hi is not None:
@@ -191,6 +100,7 @@ class Bounds(NamedTuple):
     def to_unconstrained(self, x: float) -> float:
         lo, hi = self.low, self.high
         if self.log:
+            assert lo is not None and hi is not None
             p = (math.log(x) - math.log(lo)) / (math.log(hi) - math.log(lo))
             return math.log(p) - math.log1p(-p)
         if lo is not None and hi is not None:
@@ -295,7 +205,7 @@ def tune(
         resample: fresh runs every step (default) or common random numbers.
         ad: ``"forward"`` (``jax.jacfwd``: cheap for a few parameters, memory independent of the
             horizon) or ``"reverse"`` (``jax.grad``).
-        progress: print one line per step to stderr.
+        progress: compilation notice and a progress bar (loss and parameters of each step) on stderr.
 
     Returns:
         A :class:`TuneResult`; ``plot_history(result.history)`` plots it.
@@ -333,9 +243,11 @@ def tune(
     def constrained(u_vec):
         return {n: bnds[n].to_constrained(u_vec[i]) for i, n in enumerate(names)}
 
-    def objective(u_vec, k):
-        scores = study_scores(filter_factory(constrained(u_vec)), scenario, n_runs, k)
+    def loss_and_flag_rate(scores):
         return loss(scores), jnp.mean(scores.flags.astype(dtype))
+
+    def objective(u_vec, k):
+        return study_loss(filter_factory(constrained(u_vec)), scenario, n_runs, k, loss_and_flag_rate)
 
     if ad == "forward":
         def value_and_grad(u_vec, k):
@@ -363,14 +275,16 @@ def tune(
 
     opt_state = optimizer.init(u)
     step_jit = jax.jit(step_fn)
+    bar = Progress(steps, desc="tune", unit="steps", enabled=progress)
     t0 = time.perf_counter()
     key0 = jax.random.fold_in(key, 0) if resample else key
-    compiled = step_jit.lower(u, opt_state, key0).compile()
+    with bar.compiling("one optimiser step"):
+        compiled = step_jit.lower(u, opt_state, key0).compile()
     compile_s = time.perf_counter() - t0
 
     losses, oks, flags, times = [], [], [], []
-    p_hist = {n: [] for n in names}
-    g_hist = {n: [] for n in names}
+    p_hist: dict[str, list[float]] = {n: [] for n in names}
+    g_hist: dict[str, list[float]] = {n: [] for n in names}
     for s in range(steps):
         k = jax.random.fold_in(key, s) if resample else key0
         theta = {n: float(v) for n, v in constrained(u).items()}
@@ -384,11 +298,8 @@ def tune(
         for i, n in enumerate(names):
             p_hist[n].append(theta[n])
             g_hist[n].append(float(g_theta[i]))
-        if progress:
-            ps = " ".join(f"{n}={theta[n]:.4g}" for n in names)
-            sys.stderr.write(f"tune step {s + 1}/{steps}: loss {val:.5g}  {ps}"
-                             f"{'' if ok else '  (non-finite: update skipped)'}  {times[-1]:.1f} s\n")
-            sys.stderr.flush()
+        ps = " ".join(f"{n}={theta[n]:.4g}" for n in names)
+        bar.update(1, postfix=f"loss {val:.5g}  {ps}{'' if ok else '  (non-finite: update skipped)'}")
     history = TuneHistory(
         loss=np.asarray(losses), params={n: np.asarray(v) for n, v in p_hist.items()},
         grads={n: np.asarray(v) for n, v in g_hist.items()}, ok=np.asarray(oks),
@@ -398,7 +309,7 @@ def tune(
     return TuneResult(final, history, compile_s)
 
 
-def plot_history(history: TuneHistory, path: str | None = None, *, title: str | None = None):
+def plot_history(history: TuneHistory, path: str | None = None, *, title: str | None = None) -> Any:
     """Plot the loss and every parameter against the step (matplotlib, imported lazily).
 
     Args:

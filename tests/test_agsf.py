@@ -125,7 +125,7 @@ def test_don_closed_form_for_quadratic():
 # --------------------------------------------------------------------------- the filter
 
 
-def _np_gamma_filter(cfg=agsf_np.Config()):
+def _np_gamma_filter(cfg=agsf_np.Config()):  # noqa: B008 (never mutated)
     fnp = lambda x, t: 0.5 * x + np.sin(0.04 * np.pi * (t - 1))  # noqa: E731
     hnp = lambda x, t: 0.2 * x**2 if t <= 30 else 0.5 * x - 2.0  # noqa: E731
     q = (np.array(GAMMA_PROCESS_NOISE[0]), np.array(GAMMA_PROCESS_NOISE[1])[:, None],

@@ -42,7 +42,7 @@ def _params(filt, q, r):
     return bank.BankParams(ModelParams(filt.params.model.prior, q, r))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _runner(method: str, dtype=jnp.float64):
     """One compiled kernel per (method, shapes): the noise mixtures are traced arguments of params."""
     base = _model(uwb_velocity.synthetic_noise(1, 1.0), uwb_velocity.synthetic_noise(1, 1.0), dtype)
@@ -171,7 +171,7 @@ def test_jit_equals_eager(method):
     np.testing.assert_allclose(np.asarray(infos.loglik[:3]), np.array(eager_ll), rtol=1e-11, atol=1e-11)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _simulate_batch():
     def sim(c, keys):
         noise = uwb_velocity.synthetic_noise(1, c)

@@ -241,9 +241,14 @@ def test_padding_does_not_change_the_clustering():
     # interleaved padding: live slots keep their relative order, so heads map through the slots
     slots = np.array([0, 2, 3, 5, 6, 7, 9, 10, 11])
     K = 12
-    w = np.zeros(K); m = np.zeros((K, 1)); P = np.tile(np.eye(1), (K, 1, 1)); mask = np.zeros(K, bool)
-    w[slots] = np.asarray(gm.weights); m[slots] = np.asarray(gm.means)
-    P[slots] = np.asarray(gm.covs); mask[slots] = True
+    w = np.zeros(K)
+    m = np.zeros((K, 1))
+    P = np.tile(np.eye(1), (K, 1, 1))
+    mask = np.zeros(K, bool)
+    w[slots] = np.asarray(gm.weights)
+    m[slots] = np.asarray(gm.means)
+    P[slots] = np.asarray(gm.covs)
+    mask[slots] = True
     holes = GaussianMixture(jnp.asarray(w), jnp.asarray(m), jnp.asarray(P), jnp.asarray(mask))
     lab = np.asarray(gauss_cluster(holes, 2.5).labels)
     np.testing.assert_array_equal(lab[slots], slots[np.asarray(base.labels)])

@@ -129,10 +129,12 @@ def test_threshold_change_does_not_recompile():
 
 from gmjax import filters as F  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.scenarios.jump_system import jump_system  # noqa: E402
+from gmjax.scenarios import (
+    manoeuvring_target,  # noqa: E402
+    uwb_velocity,  # noqa: E402
+)
 from gmjax.scenarios.gamma_system import gamma_system  # noqa: E402
-from gmjax.scenarios import manoeuvring_target  # noqa: E402
-from gmjax.scenarios import uwb_velocity  # noqa: E402
+from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 
 N_STEPS = 8
 

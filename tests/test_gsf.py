@@ -20,8 +20,8 @@ from gmjax import mixture as gmm  # noqa: E402
 from gmjax.filters import StepInputs, build_ekf, run  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import StateSpaceModel, simulate  # noqa: E402
-from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 from gmjax.reduction import PruneTop  # noqa: E402
+from gmjax.scenarios.jump_system import jump_system  # noqa: E402
 
 
 def as_np(gm: GaussianMixture):

@@ -67,6 +67,44 @@ def test_create_rejects_bad_input(kwargs, message):
         GaussianMixture.create(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(weights=[1.0], means=[1e300], covs=[1.0]), r"means: component 0 overflows float32"),
+        (dict(weights=[1.0, 1.0], means=[0.0, 1.0], covs=[1.0, 1e-50]),
+         r"covs: component 1 is not positive definite in float32"),
+        (dict(weights=[1e300, 1e300], means=[0.0, 1.0], covs=[1.0, 1.0], normalize=False),
+         r"weights: component 0 overflows float32"),
+        (dict(weights=[1.0, 1e-50], means=[0.0, 1.0], covs=[1.0, 1.0]),
+         r"weights: weight 1e-50 at index 1 underflows to 0 in float32"),
+        (dict(weights=[1.0], means=[[0.0, 0.0]], covs=[[[1.0, 1.0 - 1e-12], [1.0 - 1e-12, 1.0]]]),
+         r"covs: component 0 is not positive definite in float32"),
+    ],
+)
+def test_create_validates_after_casting(kwargs, message):
+    """Values float64 holds but float32 does not are refused, naming the field (issue 15, item 3)."""
+    GaussianMixture.create(**kwargs, dtype=jnp.float64)  # fine in float64
+    with pytest.raises(ValueError, match=message):
+        GaussianMixture.create(**kwargs, dtype=jnp.float32)
+
+
+def test_create_huge_weights_and_integer_dtypes():
+    # normalising [1e308, 1e308] must not overflow the sum (it gave [0, 0])
+    for dtype in (jnp.float32, jnp.float64):
+        gm = GaussianMixture.create([1e308, 1e308], [0.0, 1.0], [1.0, 1.0], dtype=dtype)
+        np.testing.assert_array_equal(np.asarray(gm.weights), [0.5, 0.5])
+    with pytest.raises(ValueError, match=r"weights: their sum overflows float64"):
+        GaussianMixture.create([1e308, 1e308], [0.0, 1.0], [1.0, 1.0], normalize=False, dtype=jnp.float64)
+    for dtype in ("int32", jnp.int64, bool):
+        with pytest.raises(ValueError, match=r"dtype: a mixture needs a floating dtype"):
+            GaussianMixture.create([1.0, 1.0], [0.0, 1.0], [1.0, 1.0], dtype=dtype)
+    gm, _ = random_gm(0, K=2)
+    with pytest.raises(ValueError, match=r"weights: a mixture needs a floating dtype"):
+        mx.check(gm._replace(weights=jnp.asarray([1, 0], jnp.int32)))
+    # integer inputs with a floating dtype are fine
+    assert GaussianMixture.create([1, 1], [0, 1], [1, 2]).weights.dtype == jnp.float64
+
+
 def test_create_rejects_nonsymmetric_covariance():
     P = np.array([[[1.0, 0.5], [0.0, 1.0]]])
     with pytest.raises(ValueError, match=r"covs: component 0 is not symmetric"):

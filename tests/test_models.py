@@ -8,10 +8,10 @@ import numpy as np
 
 from gmjax import mixture as gmm
 from gmjax.models import noise, simulate
+from gmjax.scenarios import uwb_velocity
+from gmjax.scenarios.gamma_system import gamma_system
 from gmjax.scenarios.glint_range_bearing import range_bearing
 from gmjax.scenarios.jump_system import jump_system
-from gmjax.scenarios.gamma_system import gamma_system
-from gmjax.scenarios import uwb_velocity
 
 
 def test_glint_moments_within_standard_error():

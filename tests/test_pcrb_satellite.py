@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from gmjax.pcrb import build_pcrb_gmm, pcrb_mc
+from gmjax.quadrature import smolyak
 from gmjax.scenarios import satellite_pass
 from gmjax.scenarios.satellite_pass import (
     elements_to_rv,
@@ -16,8 +18,6 @@ from gmjax.scenarios.satellite_pass import (
     rv_to_elements,
     satellite,
 )
-from gmjax.pcrb import build_pcrb_gmm, pcrb_mc
-from gmjax.quadrature import smolyak
 from gmjax.split import split_axis, uniform_library
 
 X0 = np.asarray(satellite_pass.SATELLITE_STATE)

@@ -1,3 +1,5 @@
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import pytest
@@ -17,7 +19,7 @@ def test_dynamic_fields_are_leaves_static_fields_are_not():
     assert len(leaves) == 1
     rebuilt = jax.tree_util.tree_unflatten(treedef, leaves)
     assert rebuilt.n_iter == 4 and float(rebuilt.threshold) == 0.5
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.threshold = 1.0  # frozen
 
 

@@ -15,7 +15,6 @@ from gmjax import reduction as R
 from gmjax.metrics import ise as _ise_eager
 from gmjax.mixture import GaussianMixture, moments
 
-
 ise = jax.jit(_ise_eager)
 
 

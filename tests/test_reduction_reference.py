@@ -110,7 +110,7 @@ def test_williams_matches_numpy():
 
 def test_vo_ma_matches_numpy():
     rng = np.random.default_rng(8)
-    for trial in range(30):
+    for _trial in range(30):
         w, m, P = random_components(rng, int(rng.integers(4, 10)), 2, wr=(1e-3, 0.2))
         gm = index(batch([(w, m, P)], 9), 0)
         out, info = R.vo_ma(gm, 0.02, 2.0, 5)
@@ -125,7 +125,7 @@ def test_vo_ma_matches_numpy():
 
 def test_pruning_matches_numpy():
     rng = np.random.default_rng(3)
-    for trial in range(30):
+    for _trial in range(30):
         w, m, P = random_components(rng, int(rng.integers(3, 10)), 2, wr=(1e-3, 0.3))
         gm = index(batch([(w, m, P)], 9), 0)
         for out, (keep, wk) in (
@@ -142,7 +142,7 @@ def test_pruning_matches_numpy():
 
 def test_brute_force_matches_numpy():
     rng = np.random.default_rng(12)
-    for trial in range(3):
+    for _trial in range(3):
         w, m, P = random_components(rng, 6, 2)
         gm = index(batch([(w, m, P)], 9), 0)
         out, info = R.brute_force(gm, 3)
@@ -157,7 +157,7 @@ def test_cowa_weights_match_numpy():
     from gmjax.reduction.cowa import optimal_weights
 
     rng = np.random.default_rng(4)
-    for trial in range(10):
+    for _trial in range(10):
         n = 6
         X = rng.normal(size=(n, n + 2))
         S = X @ X.T + 0.1 * np.eye(n)

@@ -25,8 +25,8 @@ from gmjax.filters.gsf import build_gsf
 from gmjax.filters.imm import IMMGSFParams, build_imm_gsf
 from gmjax.mixture import GaussianMixture as GM
 from gmjax.models import StateSpaceModel, simulate
-from gmjax.scenarios import manoeuvring_target
 from gmjax.reduction import GMRCM, PruneTop, Runnalls
+from gmjax.scenarios import manoeuvring_target
 
 # ---------------------------------------------------------------------------------------------
 # Scenario

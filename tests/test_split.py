@@ -25,7 +25,6 @@ from gmjax.split import (
     uniform_library,
 )
 
-
 _pdf = jax.jit(mixture.pdf)
 _moments = jax.jit(mixture.moments)
 

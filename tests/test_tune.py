@@ -14,9 +14,9 @@ from gmjax.filters import build_kf
 from gmjax.filters.gsf import build_gsf
 from gmjax.mixture import GaussianMixture, pad
 from gmjax.models import Scenario, StateSpaceModel
-from gmjax.scenarios.jump_system import jump_system
 from gmjax.reduction import PCM, PruneCensored, PruneThreshold, pcm, prune_censored, prune_threshold
 from gmjax.reduction import relax as R
+from gmjax.scenarios.jump_system import jump_system
 
 K = 14  # one capacity throughout so compiled kernels are shared
 

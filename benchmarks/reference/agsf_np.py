@@ -138,7 +138,7 @@ def pair_cost(w1, m1, P1, w2, m2, P2) -> float:
 class AGSSCKF:
     """The filter: ``init(prior)``, then ``step(z, t) -> (mean, cov, info)`` per time step."""
 
-    def __init__(self, f, h, q, r, cfg: Config = Config()):
+    def __init__(self, f, h, q, r, cfg: Config = Config()):  # noqa: B008 (never mutated)
         self.f, self.h, self.cfg = f, h, cfg
         self.qw, self.qm, self.qP = [np.asarray(a, float) for a in q]
         self.qw = self.qw / self.qw.sum()

@@ -51,7 +51,7 @@ def _dare(F, H, Q, R):
             if np.max(np.abs(Pn - P)) <= 1e-14 * np.max(np.abs(Pn)):
                 return Pn
             P = Pn
-        raise RuntimeError("Riccati iteration did not converge")
+        raise RuntimeError("Riccati iteration did not converge") from None
 
 
 def _moments(w, means, covs):

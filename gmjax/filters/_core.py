@@ -58,9 +58,9 @@ class UpdateInfo(NamedTuple):
     """What a measurement update reports.
 
     Attributes:
-        loglik: ``()`` ``log N(z; z_hat, S)``, the measurement log-likelihood (0 for a NaN
-            measurement). Gaussian sum filters re-weight components with it.
-        innovation: ``(m,)`` ``z - z_hat`` (0 for a NaN measurement).
+        loglik: ``()`` ``log N(z; z_hat, S)``, the measurement log-likelihood (0 for a
+            non-finite measurement). Gaussian sum filters re-weight components with it.
+        innovation: ``(m,)`` ``z - z_hat`` (0 for a non-finite measurement).
         innovation_cov: ``(m, m)`` ``S``.
         repaired: ``()`` bool, True when a covariance (predicted, innovation or posterior)
             was not numerically positive definite and was repaired by symmetrising and adding
@@ -105,8 +105,12 @@ def gaussian_state_init(mean, cov) -> GaussianState:
 
 
 def is_missing(z: Array) -> Array:
-    """``()`` bool: the measurement holds a NaN (predict-only step)."""
-    return jnp.any(jnp.isnan(z))
+    """``()`` bool: the measurement has a non-finite entry (NaN or ``±inf``): a predict-only step.
+
+    The one place every filter decides "missing"; the step then raises
+    ``StepFlags.nonfinite_measurement``.
+    """
+    return ~jnp.all(jnp.isfinite(jnp.asarray(z)))
 
 
 def loglik_from_chol(y: Vector, L: Matrix) -> Array:
@@ -152,7 +156,7 @@ def finish_info(missing, loglik, innovation, S, repaired) -> UpdateInfo:
 
 
 def safe_z(z: Array, z_hat: Array) -> tuple[Array, Array]:
-    """``(missing, z with NaNs replaced by z_hat)`` so nothing NaN reaches the arithmetic."""
+    """``(missing, z replaced by z_hat when missing)`` so nothing non-finite reaches the arithmetic."""
     z = jnp.asarray(z)
     missing = is_missing(z)
     return missing, jnp.where(missing, z_hat, z)
@@ -215,13 +219,14 @@ def gaussian_moments(dist: Any) -> tuple[Array, Array]:
     return jnp.asarray(mean), jnp.asarray(cov)
 
 
-def local_step_info(local: LocalFilter, state: Any, info: UpdateInfo) -> StepInfo:
-    """The :class:`StepInfo` of a single-Gaussian filter after ``local.update``.
+def local_step_info(local: LocalFilter, state: Any, info: UpdateInfo, z: Array) -> StepInfo:
+    """The :class:`StepInfo` of a single-Gaussian filter after ``local.update`` with measurement ``z``.
 
     ``extra`` holds ``innovation`` ``(m,)`` and ``innovation_cov`` ``(m, m)``.
     """
     mean, cov = local.moments(state)
-    flags = StepFlags(info.repaired, jnp.zeros((), bool), jnp.zeros((), bool))
+    no = jnp.zeros((), bool)
+    flags = StepFlags(info.repaired, no, no, is_missing(z))
     extra = {"innovation": info.innovation, "innovation_cov": info.innovation_cov}
     return StepInfo(mean, cov, info.loglik, jnp.ones((), jnp.int32), flags, None, extra)
 
@@ -246,6 +251,6 @@ def from_local(model: StateSpaceModel, local: LocalFilter) -> Filter:
     def update(params: ModelParams, state, z, inputs: StepInputs, *, key: PRNGKey | None = None):
         del key
         new, info = local.update(state, z, inputs.t, *gaussian_moments(params.measurement_noise))
-        return new, local_step_info(local, new, info)
+        return new, local_step_info(local, new, info, z)
 
     return Filter(init, predict, update, model.params)

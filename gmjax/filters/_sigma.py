@@ -19,10 +19,13 @@ requirement of Gaussian sum filters, whose components are re-created between pre
 
 from __future__ import annotations
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian, quadrature
+from gmjax._types import StepFn
 from gmjax.filters._core import (
     GaussianState,
     LocalFilter,
@@ -90,7 +93,7 @@ def weighted_cov(wc, A, B):
     return jnp.einsum("n,ni,nj->ij", wc, A, B)
 
 
-def local_sigma(f, h, rule) -> LocalFilter:
+def local_sigma(f: StepFn, h: StepFn, rule: SigmaPoints | Callable[..., SigmaPoints]) -> LocalFilter:
     """Sigma-point Kalman filter with the quadrature ``rule`` (see the module docstring).
 
     Args:

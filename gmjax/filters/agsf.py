@@ -1,4 +1,4 @@
-"""Adaptive Gaussian-sum square-root cubature Kalman filter with split-merge (seed 001, AGSSCKF).
+"""Adaptive Gaussian-sum square-root cubature Kalman filter with split-merge (AGSSCKF; Liu et al. 2014 = seed 001).
 
 One time step of Table 1 is split over the two halves of a :class:`~gmjax.filters.Filter`
 (``params`` is an :class:`AGSFParams`; ``inputs.t`` is the time passed to ``f`` and ``h``):
@@ -81,11 +81,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax import mixture as gmm
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax._types import Array, PRNGKey
+from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.filters._core import LocalFilter, check_model, is_missing, safe_chol
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
 from gmjax.filters.gsf import gs_predict, gs_update, inherit
@@ -113,7 +112,10 @@ __all__ = [
 class AGSFConfig:
     """Configuration of :func:`build_agsf` (defaults: seed 001 §4).
 
-    Static fields (changing them recompiles):
+    Static fields change the compiled code (changing them recompiles). Traced fields are thresholds:
+    differentiable, no recompilation; the filter reads them from ``params.config`` at every call.
+
+    Static fields:
         n_max: ``N_max``, the largest number of sub-filters (15).
         capacity: working slots of Steps 2–6 (default ``None`` = ``n_max``); the posterior keeps
             ``capacity // q`` slots (``q`` process-noise components). See the module docstring.
@@ -121,8 +123,7 @@ class AGSFConfig:
         split_gate: ``(psi, threshold) -> gate in [0, 1]``; ``None`` is the hard step
             ``psi >= threshold`` (the paper).
 
-    Traced fields (thresholds; differentiable, no recompilation; the filter reads them from
-    ``params.config`` at every call):
+    Traced fields:
         psi_th: ``psi_threshold`` of eqs 30–31 (0.02). ``inf`` disables splitting (GSCKF).
         r: common ratio of eq 31 (1.5).
         l: displacement of eq 32 (0.5).
@@ -206,7 +207,7 @@ def degree_of_nonlinearity(
     h: Callable[[Array, Array], Array],
     mean: Array,
     cov: Array,
-    t: Array = 0,
+    t: ArrayLike = 0,
     *,
     is_chol: bool = False,
 ) -> Array:
@@ -836,7 +837,7 @@ def build_agsf(
             loglik=up.loglik,
             n_components=gmm.n_active(post),
             flags=StepFlags(repaired=up.repaired, overflow=rinfo.overflow,
-                            degenerate=up.degenerate),
+                            degenerate=up.degenerate, nonfinite_measurement=missing),
             reduction=rinfo,
             extra={"n_predicted": n_predicted, "n_split": n_split,
                    "n_updated": gmm.n_active(gm), "don_max": don_max},

@@ -1,4 +1,4 @@
-"""Linear Gaussian sum filters (banks of Kalman filters) with the reductions of seed 004.
+"""Linear Gaussian sum filters (banks of Kalman filters) with the reductions of seed 004 (Pishdad & Labeau 2014).
 
 Pishdad & Labeau, *A New Reduction Scheme for Gaussian Sum Filters*. The model is linear (affine)
 ``x_k = F x_{k-1} + v_k``, ``z_k = H x_k + w_k`` (eqs 1–2) with GM process noise
@@ -99,9 +99,9 @@ from gmjax.filters._core import (
     repair_cov,
     safe_chol,
 )
+from gmjax.filters._linearized import affine_parts, linearized_filter
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs, run
 from gmjax.filters.gsf import gs_predict, gs_update
-from gmjax.filters._linearized import affine_parts, linearized_filter
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import ModelParams, StateSpaceModel
 
@@ -204,7 +204,7 @@ def _riccati_step(P: Array, F: Array, H: Array, Q: Array, R: Array) -> tuple[Arr
     return gaussian.symmetrize(A @ Pp @ A.T + K @ R @ K.T), K, S
 
 
-def steady_state_gains(F: Array, H: Array, Q: Array, R: Array, P0: Array, *, iterations: int = 2000):
+def steady_state_gains(F: Array, H: Array, Q: Array, R: Array, P0: Array, *, iterations: int = 2000) -> tuple[Array, Array]:
     """Steady-state Kalman gain and innovation covariance of ``(F, H, Q, R)`` (traceable).
 
     Iterates the Riccati recursion ``iterations`` times from ``P0`` (a ``lax.fori_loop``).
@@ -440,6 +440,7 @@ def _reduce_full(cfg: _Static, q_noise: GaussianMixture, r_noise: GaussianMixtur
         sel, x_check = best, means[best[0], best[1]]
     else:
         x_check = _merge(mu, means) if cfg.method == "red-gsfm" else means[best[0], best[1]]
+        assert cfg.Gpinv is not None  # set for every red-* method
         sel = _select(cfg.h_lin, cfg.Gpinv, q_noise, r_noise, state.f_mean, x_check, z, t)
     return means[sel[0], sel[1]], covs[sel[0], sel[1]], x_check, sel  # eqs 13-14
 
@@ -458,6 +459,7 @@ def _initial_estimate(cfg: _Static, params: BankParams, q_noise: GaussianMixture
             shape = (q_noise.capacity, r_noise.capacity)
             K, S = jnp.broadcast_to(Kp, shape + Kp.shape), jnp.broadcast_to(Sp, shape + Sp.shape)
         else:
+            assert state.ss_gain is not None and state.ss_innovation_cov is not None  # red-ssg: set in init
             K, S = state.ss_gain, state.ss_innovation_cov
         return _gain_estimate(cfg.h_lin, state.predicted, r_noise, _noise_log_weights(q_noise),
                               _noise_log_weights(r_noise), K, S, z, t)
@@ -488,6 +490,7 @@ def _reduce_single(cfg: _Static, params: BankParams, q_noise: GaussianMixture,
     else:
         x_check, degenerate, repaired = _initial_estimate(cfg, params, q_noise, r_noise, state, z, t,
                                                           preload_gain)
+        assert cfg.Gpinv is not None  # set for every red-* method
         sel = _select(cfg.h_lin, cfg.Gpinv, q_noise, r_noise, state.f_mean, x_check, z, t)
     mean, cov, rep = _one_update(cfg.local, state.predicted, r_noise, sel, z, t)
     return mean, cov, mean if x_check is None else x_check, sel, degenerate, repaired | rep
@@ -519,7 +522,7 @@ def _update(cfg: _Static, params: BankParams, state: BankState, z: Array,
     new = state._replace(mean=mean, cov=cov,
                          preload_cov=jnp.where(missing, state.preload_cov, preload_post))
     flags = StepFlags(repaired=(repaired | rep_c) & ~missing, overflow=jnp.zeros((), bool),
-                      degenerate=degenerate & ~missing)
+                      degenerate=degenerate & ~missing, nonfinite_measurement=missing)
     info = StepInfo(mean=mean, cov=cov, loglik=up.loglik, n_components=jnp.ones((), jnp.int32),
                     flags=flags, reduction=None,
                     extra={"initial": x_check, "active": sel, "missing": missing})
@@ -568,7 +571,8 @@ def build_bank(
           (for the other methods the posterior mean);
         * ``"active"``: ``(2,)`` int32 ``(i, j)`` of the kept model; ``(-1, -1)`` for
           ``gsf-merge`` and on a predict-only step;
-        * ``"missing"``: ``()`` bool, the measurement held a NaN (predict-only step).
+        * ``"missing"``: ``()`` bool, the measurement held a NaN or ``±inf`` (predict-only step;
+          also ``flags.nonfinite_measurement``).
 
     Raises:
         ValueError: unknown ``method``, a bad model, ``noise_gain`` or ``ssg_iterations``; at

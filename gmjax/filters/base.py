@@ -19,8 +19,9 @@ filter-specific.
 
 Time indexing of :func:`run`: the initial state describes ``x_0``; step ``k = 0 .. T-1`` predicts to
 ``inputs.t[k]`` and updates with ``zs[k]``, so ``states[k]`` is the posterior at ``inputs.t[k]``
-given ``zs[:k+1]``. The default times are ``1, 2, ..., T``. A measurement holding a NaN is a
-predict-only step (log-likelihood 0).
+given ``zs[:k+1]``. The default times are ``1, 2, ..., T``. A measurement with any non-finite
+entry (NaN or ``±inf``) is a predict-only step (log-likelihood 0) and raises
+``StepFlags.nonfinite_measurement``; every filter recovers at the next finite measurement.
 """
 
 from __future__ import annotations
@@ -61,22 +62,27 @@ class StepFlags(NamedTuple):
         repaired: a covariance was not numerically positive definite and was repaired.
         overflow: more components survived than the capacity holds (the heaviest were kept).
         degenerate: every likelihood underflowed (weights kept at their predicted values), or a
-            particle cloud collapsed.
+            particle cloud collapsed (its effective sample size fell below 1.5 particles).
+        nonfinite_measurement: the measurement held a NaN or an infinite entry; the step was
+            predict-only (state = prediction, log-likelihood 0). A NaN is also the way to mark a
+            missing measurement on purpose; the flag then records that the step had no data, so
+            :meth:`any` (what a Monte Carlo study counts) includes such steps.
     """
 
     repaired: Array
     overflow: Array
     degenerate: Array
+    nonfinite_measurement: Array
 
     def any(self) -> Array:
         """``()`` bool: any flag raised."""
-        return self.repaired | self.overflow | self.degenerate
+        return self.repaired | self.overflow | self.degenerate | self.nonfinite_measurement
 
 
 def no_flags() -> StepFlags:
     """All flags down."""
     f = jnp.zeros((), bool)
-    return StepFlags(f, f, f)
+    return StepFlags(f, f, f, f)
 
 
 class StepInfo(NamedTuple):
@@ -111,7 +117,7 @@ class Filter(NamedTuple):
         init: ``(params, prior: GaussianMixture | None, *, key) -> state``.
         predict: ``(params, state, inputs: StepInputs, *, key) -> state``.
         update: ``(params, state, z (m,), inputs: StepInputs, *, key) -> (state, StepInfo)``; a ``z``
-            holding a NaN is a predict-only step.
+            with a NaN or ``±inf`` entry is a predict-only step, flagged ``nonfinite_measurement``.
         params: the default parameter pytree (from the model and the configuration); replace it to
             vmap, differentiate or tune.
     """
@@ -148,11 +154,41 @@ def step_inputs(n_steps: int, inputs: Any = None) -> StepInputs:
     return inputs
 
 
-def check_measurements(zs: Array) -> Array:
-    """``zs`` as an array of shape ``(T, m)``."""
+def measurement_dim(params: Any) -> int | None:
+    """The measurement dimension ``m`` a filter's ``params`` imply, or ``None`` when they do not say.
+
+    Read from the first model-level parameter set in the pytree (anything with a
+    ``measurement_noise`` mixture: :class:`~gmjax.models.ModelParams`, also inside the IMM's tuple
+    of models) or from the ``H`` matrix of :class:`~gmjax.filters.kf.LinearGaussianParams`.
+    """
+    from gmjax.filters.kf import LinearGaussianParams  # kf imports this module
+
+    def found(x):
+        return isinstance(x, LinearGaussianParams) or isinstance(
+            getattr(x, "measurement_noise", None), GaussianMixture)
+
+    for node in jax.tree_util.tree_leaves(params, is_leaf=found):
+        if isinstance(node, LinearGaussianParams):
+            return int(jnp.shape(node.H)[0]) if jnp.ndim(node.H) == 2 else None
+        if found(node):
+            return int(node.measurement_noise.dim)
+    return None
+
+
+def check_measurements(zs: Array, m: int | None = None) -> Array:
+    """``zs`` as an array of shape ``(T, m)`` (static shape checks; fine under ``jit``).
+
+    Raises:
+        ValueError: naming ``zs``: not 2-D, or ``m`` columns expected and not found.
+    """
     zs = jnp.asarray(zs)
     if zs.ndim != 2:
         raise ValueError(f"zs: expected shape (T, m), got {zs.shape}")
+    if m is not None and zs.shape[1] != m:
+        raise ValueError(
+            f"zs: the filter's model measures m={m} values per step, but zs has shape {zs.shape} "
+            f"(expected (T, {m}))"
+        )
     return zs
 
 
@@ -170,7 +206,8 @@ def run(
 
     Args:
         filter: the filter.
-        zs: ``(T, m)`` measurements; a row holding a NaN is a predict-only step.
+        zs: ``(T, m)`` measurements; a row with a NaN or ``±inf`` entry is a predict-only step
+            (flagged ``nonfinite_measurement``).
         inputs: per-step inputs: ``None`` (times ``1..T``), a ``(T,)`` array of times, or a
             :class:`StepInputs` with a leading ``T`` axis.
         key: PRNG key (required by filters that draw: particle filters, randomised reducers);
@@ -182,11 +219,15 @@ def run(
 
     Returns:
         ``(states, infos)`` with a leading ``T`` axis; ``infos`` is a :class:`StepInfo`.
+
+    Raises:
+        ValueError: ``zs`` not ``(T, m)`` with the model's ``m`` (see :func:`measurement_dim`),
+            or inputs without the leading ``T`` axis.
     """
-    zs = check_measurements(zs)
+    params = filter.params if params is None else params
+    zs = check_measurements(zs, measurement_dim(params))
     n_steps = zs.shape[0]
     inputs = step_inputs(n_steps, inputs)
-    params = filter.params if params is None else params
     if key is None:
         k_init, step_keys = None, None
     else:

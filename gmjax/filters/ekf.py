@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from gmjax._types import StepFn
 from gmjax.filters._core import (
     LocalFilter,
     check_model,
@@ -15,7 +16,7 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_ekf", "build_ekf"]
 
 
-def local_ekf(f, h, f_jacobian=None, h_jacobian=None) -> LocalFilter:
+def local_ekf(f: StepFn, h: StepFn, f_jacobian: StepFn | None = None, h_jacobian: StepFn | None = None) -> LocalFilter:
     """Extended Kalman filter (first-order linearisation at the mean; seed 000 eqs 3–18 per component).
 
     Args:

@@ -6,6 +6,7 @@ Built on the sigma-point core :func:`gmjax.filters._sigma.local_sigma`.
 from __future__ import annotations
 
 from gmjax import quadrature
+from gmjax._types import StepFn
 from gmjax.filters._core import (
     LocalFilter,
     check_model,
@@ -18,7 +19,7 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_ghkf", "build_ghkf"]
 
 
-def local_ghkf(f, h, order: int = 3) -> LocalFilter:
+def local_ghkf(f: StepFn, h: StepFn, order: int = 3) -> LocalFilter:
     """Gauss–Hermite KF: tensor rule with ``order^d`` points (seed 002 eqs 35–38)."""
     quadrature.gauss_hermite(1, order)  # validate eagerly
     return local_sigma(f, h, lambda d, dtype: quadrature.gauss_hermite(d, order, dtype=dtype))

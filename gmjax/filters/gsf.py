@@ -145,14 +145,14 @@ class GSUpdate(NamedTuple):
     loglik: Array  # () log p(z | past); 0 on a predict-only step
     degenerate: Array  # () every likelihood underflowed; predicted weights kept
     repaired: Array  # () a local update repaired a covariance
-    missing: Array  # () the measurement held a NaN
+    missing: Array  # () the measurement held a NaN or an inf (a predict-only step)
 
 
 def gs_update(local: LocalFilter, gm: GaussianMixture, z: Array, t: Array, noise: GaussianMixture) -> GSUpdate:
     """Gaussian-sum update: every component × every measurement-noise component ``j``
     (seed 000 eqs 9–16), weights normalised in the log domain; child ``i*J + j``.
 
-    On a predict-only step (``z`` holds a NaN) the ``J`` copies collapse to the first. If every
+    On a predict-only step (``z`` has a NaN or ``±inf`` entry) the ``J`` copies collapse to the first. If every
     likelihood underflows the predicted weights are kept and ``degenerate`` is set.
     """
     z = jnp.asarray(z)
@@ -282,7 +282,7 @@ def build_gsf(
             cov=cov,
             loglik=up.loglik,
             n_components=gmm.n_active(reduced),
-            flags=StepFlags(up.repaired, overflow, up.degenerate),
+            flags=StepFlags(up.repaired, overflow, up.degenerate, up.missing),
             reduction=rinfo,
             extra={"n_updated": gmm.n_active(up.mixture), "ise": ise},
         )

@@ -39,10 +39,10 @@ from jax.scipy.special import logsumexp
 
 from gmjax import gaussian
 from gmjax import mixture as gmm
-from gmjax._types import Array, PRNGKey
-from gmjax.filters.local import LOCAL_FILTERS
+from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.filters._core import LocalFilter, check_model, gaussian_moments, is_missing
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
+from gmjax.filters.local import LOCAL_FILTERS
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import ModelParams, StateSpaceModel
 
@@ -112,7 +112,7 @@ def _mix(local: LocalFilter, states, log_probs, log_P):
     return log_c, jax.vmap(local.init)(x0, P0)
 
 
-def imm_moments(local: LocalFilter):
+def imm_moments(local: LocalFilter) -> Callable[[IMMState], tuple[Array, Array]]:
     """``state -> (mean, cov)`` of the IMM mixture ``sum_j mu_j N(x_j, P_j)``."""
 
     def moments(state: IMMState):
@@ -130,7 +130,7 @@ def _posterior_probs(log_probs: Array, logliks: Array, z: Array) -> tuple[Array,
     Args:
         log_probs: ``(M,)`` predicted ``log c_j``.
         logliks: ``(M,)`` ``log L_j``.
-        z: ``(m,)`` the measurement (a NaN: predict-only).
+        z: ``(m,)`` the measurement (a non-finite entry: predict-only).
 
     Returns:
         ``(log_mu (M,), loglik (), degenerate ())``: a missing measurement, or every model
@@ -187,11 +187,11 @@ def _local_filters(models, filter, filter_kwargs) -> list[LocalFilter]:
 
 def build_imm(
     models: Sequence[StateSpaceModel],
-    transition,
+    transition: ArrayLike,
     *,
     filter: str | Callable[[StateSpaceModel], LocalFilter] = "ekf",
-    initial_probs=None,
-    **filter_kwargs,
+    initial_probs: ArrayLike | None = None,
+    **filter_kwargs: Any,
 ) -> Filter:
     """An IMM filter over ``M`` models (see the module docstring).
 
@@ -271,7 +271,7 @@ def build_imm(
         log_mu, loglik, degenerate = _posterior_probs(state.log_probs, infos.loglik, z)
         new = IMMState(states, log_mu)
         mean, cov = moments(new)
-        flags = StepFlags(jnp.any(infos.repaired), jnp.zeros((), bool), degenerate)
+        flags = StepFlags(jnp.any(infos.repaired), jnp.zeros((), bool), degenerate, is_missing(z))
         extra = {"model_probs": jnp.exp(log_mu), "model_loglik": infos.loglik,
                  "innovation": infos.innovation, "innovation_cov": infos.innovation_cov}
         return new, StepInfo(mean, cov, loglik, jnp.asarray(M, jnp.int32), flags, None, extra)
@@ -351,7 +351,7 @@ def _mix_mixtures(gm: GaussianMixture, log_probs: Array, log_P: Array) -> tuple[
 def _combine_reduction(r: Any, mu: Array) -> Any:
     """The per-model :class:`~gmjax.reduction.ReductionInfo` (stacked on ``M``) as one: counts
     summed, ``pruned_mass`` and ``cost`` weighted by ``mu_j``, ``labels`` concatenated,
-    ``overflow`` any, ``aux`` kept stacked on ``M``."""
+    ``overflow`` and ``invalid_threshold`` any, ``aux`` kept stacked on ``M``."""
     return r._replace(
         n_in=jnp.sum(r.n_in),
         n_out=jnp.sum(r.n_out),
@@ -359,6 +359,7 @@ def _combine_reduction(r: Any, mu: Array) -> Any:
         labels=r.labels.reshape(-1),
         overflow=jnp.any(r.overflow),
         cost=jnp.sum(mu * r.cost),
+        invalid_threshold=jnp.any(r.invalid_threshold),
     )
 
 
@@ -371,6 +372,7 @@ def _imm_gsf_info(log_mu: Array, loglik: Array, infos: StepInfo) -> StepInfo:
         repaired=jnp.any(infos.flags.repaired),
         overflow=jnp.any(infos.flags.overflow),
         degenerate=jnp.all(infos.flags.degenerate),
+        nonfinite_measurement=jnp.any(infos.flags.nonfinite_measurement),
     )
     extra = {
         "model_probs": mu,
@@ -388,12 +390,12 @@ def _imm_gsf_info(log_mu: Array, loglik: Array, infos: StepInfo) -> StepInfo:
 
 def build_imm_gsf(
     models: Sequence[StateSpaceModel],
-    transition,
+    transition: ArrayLike,
     *,
     local: str | LocalFilter = "ekf",
-    reducer=None,
+    reducer: Any = None,
     capacity: int = 16,
-    initial_probs=None,
+    initial_probs: ArrayLike | None = None,
     track_ise: bool = False,
 ) -> Filter:
     """An IMM whose model-conditioned filters are Gaussian sum filters (GM prior and noises).

@@ -6,14 +6,14 @@ are the Jacobians of ``f``, ``h``), and ``kalman_filter(F, H, Q, R, m0, P0)`` fr
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from gmjax import mixture as gmm
-from gmjax._types import PRNGKey
+from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.filters._core import (
     GaussianState,
     LocalFilter,
@@ -29,7 +29,7 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["LinearGaussianParams", "local_kf", "build_kf", "kalman_filter"]
 
 
-def local_kf(F, H) -> LocalFilter:
+def local_kf(F: ArrayLike | Callable[[Array], Array], H: ArrayLike | Callable[[Array], Array]) -> LocalFilter:
     """Kalman filter for ``x' = F x + v``, ``z = H x + w`` (noise means allowed).
 
     Args:
@@ -87,7 +87,7 @@ class LinearGaussianParams(NamedTuple):
     prior_cov: jax.Array  # (d, d)
 
 
-def kalman_filter(F, H, Q, R, prior_mean, prior_cov) -> Filter:
+def kalman_filter(F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, prior_mean: ArrayLike, prior_cov: ArrayLike) -> Filter:
     """A time-invariant Kalman filter built from arrays; ``params`` is a :class:`LinearGaussianParams`.
 
     The update is the Joseph form of :func:`local_kf`. Replace ``filter.params`` (or pass
@@ -126,6 +126,6 @@ def kalman_filter(F, H, Q, R, prior_mean, prior_cov) -> Filter:
         del key
         loc = local(p)
         new, info = loc.update(state, z, inputs.t, jnp.zeros(p.R.shape[0], state.mean.dtype), p.R)
-        return new, local_step_info(loc, new, info)
+        return new, local_step_info(loc, new, info, z)
 
     return Filter(init, predict, update, params)

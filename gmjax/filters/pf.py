@@ -269,6 +269,11 @@ def _require_key(key: PRNGKey | None, call: str) -> PRNGKey:
     return key
 
 
+# below this effective sample size (after weighting) one particle carries essentially all the weight:
+# the cloud has collapsed and its covariance says nothing (flagged ``degenerate``)
+_COLLAPSED_ESS = 1.5
+
+
 def _reweight(log_weights: Array, ll_i: Array, missing: Array) -> tuple[Array, Array, Array]:
     """Bayes step in the log domain: ``log w_i + log p(z | x_i)``, normalised.
 
@@ -357,8 +362,9 @@ def build_pf(
         :class:`StepInfo` reports the weighted particle moments after the update
         (:func:`pf_moments`), ``loglik = log sum_i w_i p(z | x_i)`` (``-inf`` when degenerate),
         ``n_components = 1`` (a particle cloud is no mixture; the count is static, ``N``),
-        ``flags.degenerate`` (every likelihood underflowed; the weights were
-        kept), and ``extra = {"ess": () ESS after weighting, before resampling,
+        ``flags.degenerate`` (every likelihood underflowed, the weights were kept; or the cloud
+        collapsed: ESS after weighting below 1.5, one particle carries essentially all the
+        weight), ``flags.nonfinite_measurement`` (a NaN or ``±inf`` in ``z``: predict-only), and ``extra = {"ess": () ESS after weighting, before resampling,
         "resampled": () bool}``.
 
     Raises:
@@ -413,7 +419,9 @@ def build_pf(
         new = PFState(jnp.where(do_rs, x_rs, x), jnp.where(do_rs, jnp.full_like(lw, -jnp.log(N)), lw))
         mean, cov = pf_moments(new)
         no = jnp.zeros((), bool)
-        info = StepInfo(mean, cov, loglik, jnp.ones((), jnp.int32), StepFlags(no, no, degenerate),
+        collapsed = (ess < _COLLAPSED_ESS) & ~missing if N > 1 else no
+        flags = StepFlags(no, no, degenerate | collapsed, missing)
+        info = StepInfo(mean, cov, loglik, jnp.ones((), jnp.int32), flags,
                         None, {"ess": ess, "resampled": do_rs})
         return new, info
 

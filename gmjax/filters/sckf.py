@@ -13,6 +13,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
 from gmjax import quadrature
+from gmjax._types import StepFn
 from gmjax.filters._core import (
     LocalFilter,
     SqrtState,
@@ -62,7 +63,7 @@ def _fix_factor(S):
     return jnp.where(bad, res.factor, S), bad
 
 
-def local_sckf(f, h) -> LocalFilter:
+def local_sckf(f: StepFn, h: StepFn) -> LocalFilter:
     """Square-root cubature Kalman filter (seed 001 eqs 8–22).
 
     State: :class:`SqrtState` ``(mean, chol)``. Predict (eqs 8–12):

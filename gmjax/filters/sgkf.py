@@ -6,6 +6,7 @@ Built on the sigma-point core :func:`gmjax.filters._sigma.local_sigma`.
 from __future__ import annotations
 
 from gmjax import quadrature
+from gmjax._types import StepFn
 from gmjax.filters._core import (
     LocalFilter,
     check_model,
@@ -18,7 +19,7 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_sgkf", "build_sgkf"]
 
 
-def local_sgkf(f, h, level: int = 2, growth: str = "linear") -> LocalFilter:
+def local_sgkf(f: StepFn, h: StepFn, level: int = 2, growth: str = "linear") -> LocalFilter:
     """Sparse-grid (Smolyak Gauss–Hermite) quadrature KF (seed 002 §II-C)."""
     quadrature.smolyak(1, level, growth)  # validate eagerly
     return local_sigma(

@@ -6,6 +6,7 @@ Built on the sigma-point core :func:`gmjax.filters._sigma.local_sigma`.
 from __future__ import annotations
 
 from gmjax import quadrature
+from gmjax._types import StepFn
 from gmjax.filters._core import (
     LocalFilter,
     check_model,
@@ -18,7 +19,7 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_ukf", "build_ukf"]
 
 
-def local_ukf(f, h, alpha: float = 1.0, beta: float = 0.0, kappa: float | None = None) -> LocalFilter:
+def local_ukf(f: StepFn, h: StepFn, alpha: float = 1.0, beta: float = 0.0, kappa: float | None = None) -> LocalFilter:
     """Unscented KF with the scaled UT (seed 002 eqs 27–32; defaults of :func:`quadrature.unscented`).
 
     FilterPy's ``MerweScaledSigmaPoints(d, alpha, beta, kappa)`` is the same point set.

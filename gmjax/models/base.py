@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
-from gmjax._types import Array
+from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
 
 __all__ = ["ModelParams", "StateSpaceModel", "Scenario", "simulate"]
@@ -81,8 +81,8 @@ class Scenario(NamedTuple):
     model: StateSpaceModel
     n_steps: int
     sample_initial: Callable[[Array], Array]
-    sample_process_noise: Callable[[Array, Array], Array]
-    sample_measurement_noise: Callable[[Array, Array], Array]
+    sample_process_noise: Callable[[Array, ArrayLike], Array]
+    sample_measurement_noise: Callable[[Array, ArrayLike], Array]
     truth_f: Callable[[Array, Array], Array] | None = None
     truth_h: Callable[[Array, Array], Array] | None = None
     position_dims: tuple[int, ...] | None = None

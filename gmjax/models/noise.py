@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 
@@ -45,7 +47,7 @@ def glint_variance(gauss_std: ArrayLike, laplace_scale: ArrayLike, frequency: fl
     return (1 - frequency) * jnp.asarray(gauss_std) ** 2 + frequency * 2 * jnp.asarray(laplace_scale) ** 2
 
 
-def mixture_sampler(gm: GaussianMixture):
+def mixture_sampler(gm: GaussianMixture) -> Callable[..., Array]:
     """``(key, t) -> (d,)``: one draw from a Gaussian mixture (time-invariant)."""
 
     def sample(key: PRNGKey, t: Array | None = None) -> Array:

@@ -1,4 +1,4 @@
-"""Posterior Cramér-Rao bounds (seed 002): Tichavsky's recursion, Monte Carlo and GMM-quadrature.
+"""Posterior Cramér-Rao bounds (Zhang et al. 2021 = seed 002): Tichavsky's recursion, Monte Carlo and GMM-quadrature.
 
 * :func:`pcrb_step` - one step of eq 4; :func:`pcrb_linear` - the linear Gaussian case (Kalman).
 * :func:`pcrb_mc` - expectations of eqs 5-8 over simulated trajectories, chunked.

@@ -1,4 +1,4 @@
-"""GMM-quadrature PCRB (seed 002 §IV): Algorithms 1 and 2 with the nonlinearity switch.
+"""GMM-quadrature PCRB (Zhang et al. 2021 = seed 002, §IV): Algorithms 1 and 2 with the nonlinearity switch.
 
 The state density is a fixed-capacity Gaussian mixture of ``K`` components. Each step
 
@@ -35,7 +35,7 @@ from gmjax.mixture import GaussianMixture, from_gaussian, pad, sanitize
 from gmjax.pcrb._model import PCRBModel, check_model, prior_information
 from gmjax.pcrb._recursion import PCRBResult, bounds_from_information, inv_pd, pcrb_step
 from gmjax.quadrature import SigmaPoints, unscented
-from gmjax.reduction import kmeans
+from gmjax.reduction.kmeans import kmeans
 from gmjax.split import SplitLibrary, split_repeated
 
 __all__ = [

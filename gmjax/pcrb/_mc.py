@@ -8,8 +8,6 @@ of one chunk. The per-chunk estimates also give a batch-means standard error of 
 
 from __future__ import annotations
 
-import sys
-import time
 from functools import partial
 from typing import NamedTuple
 
@@ -17,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmjax._progress import Progress
 from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.mixture import sample as sample_mixture
 from gmjax.pcrb._model import PCRBModel, check_model, prior_information
@@ -114,7 +113,7 @@ def mc_expectations(
     n_chunks = -(-int(n_samples) // chunk)
     out11, outF, out22, counts = [], [], [], []
     kernel = _kernel(model, int(n_steps), chunk)
-    t0 = time.perf_counter()
+    bar = Progress(n_chunks, desc="pcrb_mc", unit="chunks", enabled=progress)
     for c in range(n_chunks):
         n_valid = min(chunk, n_samples - c * chunk)
         s11, sF, s22 = kernel(jax.random.fold_in(key, c), jnp.asarray(n_valid))
@@ -122,11 +121,7 @@ def mc_expectations(
         outF.append(np.asarray(sF, np.float64) / n_valid)
         out22.append(np.asarray(s22, np.float64) / n_valid)
         counts.append(n_valid)
-        if progress:
-            _progress(c + 1, n_chunks, time.perf_counter() - t0)
-    if progress:
-        sys.stderr.write("\n")
-        sys.stderr.flush()
+        bar.update(1)
     return np.stack(out11), np.stack(outF), np.stack(out22), np.asarray(counts, np.float64)
 
 
@@ -148,13 +143,6 @@ def _kernel(model: PCRBModel, n_steps: int, chunk: int):
         _KERNELS.pop(next(iter(_KERNELS)))
     _KERNELS[key] = (model, kernel)
     return kernel
-
-
-def _progress(done: int, total: int, elapsed: float, width: int = 30) -> None:
-    filled = int(width * done / total)
-    bar = "#" * filled + "." * (width - filled)
-    sys.stderr.write(f"\rpcrb_mc [{bar}] chunk {done}/{total}  {elapsed:6.1f} s")
-    sys.stderr.flush()
 
 
 def pcrb_mc(

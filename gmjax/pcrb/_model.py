@@ -9,7 +9,7 @@ converts (and checks) a :class:`StateSpaceModel`.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +17,9 @@ import numpy as np
 
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
+
+if TYPE_CHECKING:  # gmjax.models imports nothing from pcrb, but keep the import graph one-way
+    from gmjax.models.base import StateSpaceModel
 
 __all__ = ["PCRBModel", "from_state_space_model", "prior_information"]
 
@@ -112,7 +115,7 @@ def prior_information(prior: GaussianMixture, J0: ArrayLike | None = None) -> Ar
     return jnp.linalg.inv(P0)
 
 
-def from_state_space_model(ssm) -> PCRBModel:
+def from_state_space_model(ssm: StateSpaceModel) -> PCRBModel:
     """Convert a :class:`gmjax.models.StateSpaceModel` with single zero-mean Gaussian noises.
 
     ``StateSpaceModel`` writes ``x_k = f(x_{k-1}, k) + v_k``: its ``f`` is called with the index of

@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_solve
 
-
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike
 

@@ -39,6 +39,7 @@ them differentiable in their thresholds; the shared primitives (soft step, gates
 soft memberships, the soft split gate) are in :mod:`gmjax.reduction.relax`.
 """
 
+from gmjax.reduction import relax as relax
 from gmjax.reduction.base import EmptyState as EmptyState
 from gmjax.reduction.base import Reducer as Reducer
 from gmjax.reduction.base import ReductionInfo as ReductionInfo
@@ -73,6 +74,8 @@ from gmjax.reduction.prune import prune_threshold as prune_threshold
 from gmjax.reduction.prune import prune_top as prune_top
 from gmjax.reduction.refine import Refined as Refined
 from gmjax.reduction.refine import ise_refine as ise_refine
+from gmjax.reduction.relax import MODES as MODES
+from gmjax.reduction.relax import gated_prune as gated_prune
 from gmjax.reduction.runnalls import Runnalls as Runnalls
 from gmjax.reduction.runnalls import runnalls as runnalls
 from gmjax.reduction.runnalls import runnalls_cost as runnalls_cost
@@ -85,9 +88,6 @@ from gmjax.reduction.west import West as West
 from gmjax.reduction.west import west as west
 from gmjax.reduction.williams import Williams as Williams
 from gmjax.reduction.williams import williams as williams
-from gmjax.reduction import relax as relax
-from gmjax.reduction.relax import MODES as MODES
-from gmjax.reduction.relax import gated_prune as gated_prune
 
 __all__ = [
     "Reducer",

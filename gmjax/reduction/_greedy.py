@@ -29,8 +29,6 @@ from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import make_info
 
-
-
 # ----------------------------------------------------------------------------- the greedy loop
 
 

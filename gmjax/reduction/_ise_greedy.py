@@ -39,7 +39,7 @@ class ISEGreedyState(NamedTuple):
     actions: jax.Array
 
 
-def initial_state(gm: GaussianMixture, w0: jax.Array, n_steps: int) -> "ISEGreedyState":
+def initial_state(gm: GaussianMixture, w0: jax.Array, n_steps: int) -> ISEGreedyState:
     """The greedy loop's state before any action (shared by Williams and COWA)."""
     return ISEGreedyState(
         w0, gm.means, gm.covs, gm.mask, _util.identity_labels(gm),

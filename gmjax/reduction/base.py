@@ -24,6 +24,11 @@ class ReductionInfo(NamedTuple):
             (the heaviest were kept).
         cost: ``()`` the reducer's own cost of the result (ISE, EISE, summed KL bound, ...), or 0.
         aux: reducer-specific extras (e.g. PCM's searched ``lambda``), a dict of arrays.
+        invalid_threshold: ``()`` bool, True when a dynamic (traced) threshold or parameter of the
+            reducer was NaN. The reducer then returns its input unchanged (fitted to the output
+            capacity, the heaviest kept with ``overflow`` if it does not fit), ``cost = 0``, and
+            ``aux`` is not meaningful. Every reducer fills it (``False`` by default in
+            :func:`make_info`); concrete NaN thresholds are refused eagerly with ``ValueError``.
     """
 
     n_in: Array
@@ -33,6 +38,7 @@ class ReductionInfo(NamedTuple):
     overflow: Array
     cost: Array
     aux: dict[str, Any]
+    invalid_threshold: Array = False
 
 
 def make_info(
@@ -44,6 +50,7 @@ def make_info(
     overflow: Array | bool = False,
     cost: Array | float = 0.0,
     aux: dict[str, Any] | None = None,
+    invalid_threshold: Array | bool = False,
 ) -> ReductionInfo:
     """Assemble a :class:`ReductionInfo` with the standard dtypes."""
     dtype = gm_in.weights.dtype
@@ -55,6 +62,7 @@ def make_info(
         overflow=jnp.asarray(overflow, bool),
         cost=jnp.asarray(cost, dtype),
         aux={} if aux is None else aux,
+        invalid_threshold=jnp.asarray(invalid_threshold, bool),
     )
 
 

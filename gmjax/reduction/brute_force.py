@@ -10,6 +10,7 @@ import numpy as np
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
@@ -54,11 +55,17 @@ def set_partitions(n: int, k: int) -> np.ndarray:
 def _brute(gm, num_out, capacity, batch_size):
     gmc = compact(gm)  # live slots first: partitions differing only on padding coincide
     parts = jnp.asarray(set_partitions(gm.capacity, num_out))
+    # score on normalised weights: moment merges are linear in the weights, so the ISE of every
+    # partition scales by total^2 and the argmin is unchanged, but tiny weights (~1e-300) no longer
+    # underflow every ISE to 0 (which made every partition "optimal")
+    total = jnp.sum(jnp.where(gmc.mask, gmc.weights, 0.0))
+    scale = jnp.where(total > 0, total, 1.0)
+    gmn = gmc._replace(weights=gmc.weights / scale)
 
     def score(lab):
-        lab = jnp.where(gmc.mask, lab, -1)
-        red = merge_labels(gmc, lab, num_out, "moment")
-        return ise(gmc, red)
+        lab = jnp.where(gmn.mask, lab, -1)
+        red = merge_labels(gmn, lab, num_out, "moment")
+        return ise(gmn, red)
 
     vals = jax.lax.map(score, parts, batch_size=batch_size)
     best = jnp.argmin(vals)
@@ -68,7 +75,8 @@ def _brute(gm, num_out, capacity, batch_size):
     order = jnp.argsort(~gm.mask, stable=True)
     labels_in = jnp.zeros(gm.capacity, jnp.int32).at[order].set(lab)
     out, labels, overflow, dropped = _util.finalize(gm, red, labels_in, capacity)
-    return out, make_info(gm, out, labels, overflow=overflow, pruned_mass=dropped, cost=vals[best])
+    cost = vals[best] * scale * scale  # the ISE of the weights as given (may underflow to 0)
+    return out, make_info(gm, out, labels, overflow=overflow, pruned_mass=dropped, cost=cost)
 
 
 def brute_force(
@@ -117,5 +125,5 @@ class BruteForce(Stateless):
     num_out: int = static_field(3)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return brute_force(gm, self.num_out, capacity=self.capacity, key=key)

@@ -1,5 +1,7 @@
 """Distribution-similarity ("Gauss") clustering of mixture components (seed 000 §III-B, seed 003 §2.1).
 
+Seed 000 is Xu et al., PCM; seed 003 is Xu et al. 2019, GMRCM (docs/references.md).
+
 The clustering of both seeds, written as fixed-size array programs that run under ``jit``/``vmap``:
 
 1. **Confidence distance.** Two components are *similar* when each centre lies inside the other's

@@ -9,38 +9,46 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
+from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.metrics import ise
-from gmjax.reduction.west import west_distance
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.west import west_distance
 
 __all__ = ["cowa", "optimal_weights", "COWA"]
 
 
-def optimal_weights(S, b, active, total, n_iter):
+def optimal_weights(S: Array, b: Array, active: Array, total: Array, n_iter: int) -> tuple[Array, Array]:
     """ISE-optimal weights on ``active`` with ``sum w = total`` and ``w >= 0`` (COWA's QP).
 
     Minimises ``w^T S w - 2 b^T w``: on the active set ``S w = b + nu 1`` with ``nu`` fixed by the
     equality constraint; components that come out negative are removed and the system re-solved
-    (``n_iter`` static rounds, all negative components at once). Returns ``(w, active)``; if the
-    solve is not finite the input weights are kept by the caller.
+    (``n_iter`` static rounds, all negative components at once). Returns ``(w, active)``; ``w`` is
+    NaN when the system is singular (e.g. two identical components: the optimum is not unique) and
+    the caller then keeps the input weights. The singular case is detected on a gradient-free solve
+    first and the differentiated solve sees the identity instead, so gradients stay finite.
     """
     K = S.shape[0]
     eye = jnp.eye(K, dtype=S.dtype)
+
+    def raw(A, bb, one):
+        x = jnp.linalg.solve(A, jnp.stack([bb, one], axis=1))
+        u, v = x[:, 0], x[:, 1]
+        return u, v, one @ v
 
     def solve(act):
         A = jnp.where(act[:, None] & act[None, :], S, eye)
         bb = jnp.where(act, b, 0.0)
         one = act.astype(S.dtype)
-        x = jnp.linalg.solve(A, jnp.stack([bb, one], axis=1))
-        u, v = x[:, 0], x[:, 1]
-        nu = (total - one @ u) / (one @ v)
-        return jnp.where(act, u + nu * v, 0.0)
+        u0, v0, den0 = raw(*jax.lax.stop_gradient((A, bb, one)))
+        ok = jnp.all(jnp.isfinite(u0)) & jnp.all(jnp.isfinite(v0)) & (den0 != 0) & jnp.isfinite(den0)
+        u, v, den = raw(jnp.where(ok, A, eye), jnp.where(ok, bb, 0.0), jnp.where(ok, one, 1.0))
+        nu = (total - one @ u) / jnp.where(ok, den, 1.0)
+        return jnp.where(act & ok, u + nu * v, jnp.where(ok, 0.0, jnp.nan))
 
     def body(_, carry):
         w, act = carry
@@ -107,6 +115,7 @@ def _cowa(gm, num_out, threshold, capacity):
     )
 
 
+@_util.guard_nan(threshold=float("inf"))
 def cowa(
     gm: GaussianMixture,
     num_out: int,
@@ -139,5 +148,5 @@ class COWA(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return cowa(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)

@@ -1,6 +1,6 @@
 """Extended ISE (EISE) of a cluster-merge and the search for the confidence multiplier ``λ``.
 
-The EISE of a clustering (seed 000 eqs 29–35; seed 003 eqs 10–15) is the sum over clusters of the
+The EISE of a clustering (Xu et al., PCM = seed 000 eqs 29–35; Xu et al. 2019 = seed 003 eqs 10–15) is the sum over clusters of the
 integrated squared error between the cluster's sub-mixture ``f_c = Σ_{m∈c} w_m N(u_m, P_m)`` and its
 merged Gaussian ``q_c = W_c N(ū_c, P̄_c)``, plus a penalty on the number of clusters ``N'``:
 
@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian
-from gmjax._types import Array, ArrayLike
+from gmjax._types import Array, ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction.clustering import (
     ClusterResult,
@@ -73,7 +73,7 @@ def _check_options(method: str, regularizer: str) -> None:
         raise ValueError(f"regularizer: expected one of {_REGULARIZERS}, got {regularizer!r}")
 
 
-def onehot_membership(labels: Array, num_clusters: int, dtype=None) -> Array:
+def onehot_membership(labels: Array, num_clusters: int, dtype: DTypeLike | None = None) -> Array:
     """``(K, C)`` float membership ``A[m, c] = [labels[m] == c]`` (rows of ``-1`` labels are 0)."""
     dtype = jnp.float32 if dtype is None else dtype
     return (labels[:, None] == jnp.arange(num_clusters)[None, :]).astype(dtype)

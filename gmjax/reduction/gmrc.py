@@ -8,14 +8,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
-from gmjax.reduction.runnalls import _runnalls
 from gmjax.reduction.merge import merge_labels
+from gmjax.reduction.runnalls import _runnalls
 
 __all__ = ["gmrc", "GMRC", "kl_upper_bound"]
 
@@ -113,5 +113,5 @@ class GMRC(Stateless):
     max_iter: int = static_field(50)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return gmrc(gm, self.num_out, max_iter=self.max_iter, capacity=self.capacity, key=key)

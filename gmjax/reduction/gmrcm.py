@@ -1,4 +1,4 @@
-"""Cluster-merge reduction, GMRCM (seed 003, Algorithm 1 steps 4–8).
+"""Cluster-merge reduction, GMRCM (Xu et al. 2019 = seed 003, Algorithm 1 steps 4–8).
 
 Per call (one filter step):
 
@@ -64,6 +64,8 @@ def init_state(capacity: int) -> GMRCMState:
     return GMRCMState(jnp.zeros((capacity,), jnp.int32))
 
 
+@_util.guard_nan(alpha=0.3, lam=1.5, lambda_range=1.5, temperature=0.25, tol=1e-6, range_scale=0.5,
+           weight_threshold=0.01, large_factor=1.5, state_init=init_state)
 def gmrcm(
     gm: GaussianMixture,
     state: GMRCMState | None = None,
@@ -237,6 +239,6 @@ class GMRCM:
             large_factor=self.large_factor, dims=self.dims, capacity=self.capacity, key=key,
         )
 
-    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
+    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         out, _, info = self.reduce(gm, None, key=key)
         return out, info

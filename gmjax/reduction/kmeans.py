@@ -8,9 +8,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
@@ -19,7 +19,7 @@ from gmjax.reduction.merge import merge_labels
 __all__ = ["kmeans", "KMeans", "weighted_mahalanobis_sq", "farthest_point_init"]
 
 
-def weighted_mahalanobis_sq(wi, mi, Pi, wj, mj, Pj):
+def weighted_mahalanobis_sq(wi: Array, mi: Array, Pi: Array, wj: Array, mj: Array, Pj: Array) -> Array:
     """Weighted Mahalanobis distance between two components (seed 002 eq 69), broadcasting.
 
     ``d_ij^2 = w_i w_j / (w_i + w_j) (mu_i - mu_j)^T (Sigma_i + Sigma_j)^{-1} (mu_i - mu_j)``;
@@ -179,7 +179,7 @@ class KMeans(Stateless):
     tol: float = static_field(0.0)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return kmeans(
             gm, self.num_out, max_iter=self.max_iter, tol=self.tol, capacity=self.capacity, key=key
         )

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 
 __all__ = ["merge_moment", "merge_ci", "merge_labels", "ci_trace_weights"]
@@ -35,7 +36,7 @@ def _safe_div(num, den, fill=0.0):
     return jnp.where(ok_b, num / den_b, fill)
 
 
-def merge_moment(gm: GaussianMixture):
+def merge_moment(gm: GaussianMixture) -> tuple[Array, Array, Array]:
     """Moment-preserving merge of every live component (seed 002 eqs 70–72; seed 003 eqs 16–18).
 
     ``w_C = sum_i w_i`` (eq 70), ``mu_C = sum_i w_i mu_i / w_C`` (eq 71) and
@@ -84,7 +85,7 @@ def _project_simplex(x, live):
     return jnp.where(live, jnp.maximum(x - theta, 0.0), 0.0)
 
 
-def ci_trace_weights(lam0, covs_inv, live, n_steps: int = 10):
+def ci_trace_weights(lam0: Array, covs_inv: Array, live: Array, n_steps: int = 10) -> Array:
     """Trace-minimising CI weights on the simplex over ``live`` (seed 000 eq 40).
 
     Minimises ``tr[(sum_j w_j P_j^{-1})^{-1}]`` — eq 40 as printed reads ``[sum_j w_j P_j]^{-1}``,
@@ -130,7 +131,7 @@ def ci_trace_weights(lam0, covs_inv, live, n_steps: int = 10):
     return lam
 
 
-def merge_ci(gm: GaussianMixture, *, optimize: bool = False, n_steps: int = 10):
+def merge_ci(gm: GaussianMixture, *, optimize: bool = False, n_steps: int = 10) -> tuple[Array, Array, Array]:
     """Covariance-intersection merge of every live component (seed 000 eqs 38–39, 41).
 
     ``P^{-1} = sum_j w_j P_j^{-1}`` (eq 38), ``u = P sum_j w_j P_j^{-1} u_j`` (eq 39) with the

@@ -1,4 +1,4 @@
-"""Prune-cluster-merge mixture reduction, PCM-GMR (seed 000, Table 1 steps 2–7).
+"""Prune-cluster-merge mixture reduction, PCM-GMR (Xu et al., PCM = seed 000, Table 1 steps 2–7).
 
 1. *Weight-censored pruning* by the j-th order statistic (eqs 19–22, ``ρ = 0.9544``, cap ``N_u``)
    with the survivors' weights reset by eq 41 (:func:`gmjax.reduction.prune.prune_censored`).
@@ -142,6 +142,8 @@ def fixed_result(gm: GaussianMixture, lam: ArrayLike, labels: Array, value: Arra
                         jnp.zeros((), bool))
 
 
+@_util.guard_nan(rho=0.9544, alpha=1e-3, lam=2.0, lambda_range=2.0, temperature=0.2, tol=1e-6, range_scale=0.5,
+           gate_temperature=0.0)
 def pcm(
     gm: GaussianMixture,
     *,
@@ -392,7 +394,7 @@ class PCM(Stateless):
     gate_temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None):
+    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return pcm(
             gm, rho=self.rho, max_components=self.max_components, alpha=self.alpha, lam=self.lam,
             lambda_range=self.lambda_range, grid_size=self.grid_size,

@@ -24,7 +24,9 @@ import jax.numpy as jnp
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
+from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 from gmjax.reduction.relax import (
     censored_gates,
@@ -70,6 +72,7 @@ def _keep(gm: GaussianMixture, keep: jax.Array, capacity: int):
     )
 
 
+@_util.guard_nan(threshold=1e-5, temperature=0.0)
 def prune_threshold(
     gm: GaussianMixture,
     threshold: Any,
@@ -171,6 +174,7 @@ def censored_count(gm: GaussianMixture, rho: Any, max_components: int | None = N
     return N
 
 
+@_util.guard_nan(rho=0.9544, temperature=0.0)
 def prune_censored(
     gm: GaussianMixture,
     rho: Any = 0.9544,
@@ -253,7 +257,7 @@ class PruneThreshold(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_threshold(gm, self.threshold, temperature=self.temperature, mode=self.mode,
                                capacity=self.capacity, key=key)
 
@@ -265,7 +269,7 @@ class PruneTop(Stateless):
     num_out: int = static_field(10)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_top(gm, self.num_out, capacity=self.capacity, key=key)
 
 
@@ -284,7 +288,7 @@ class PruneCensored(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_censored(
             gm, self.rho, self.max_components, temperature=self.temperature, mode=self.mode,
             capacity=self.capacity, key=key,

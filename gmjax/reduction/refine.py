@@ -12,6 +12,7 @@ import optax
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
@@ -48,12 +49,17 @@ def _from_params(p: _Params, mask: jax.Array, total: jax.Array) -> GaussianMixtu
     return sanitize(GaussianMixture(w, p.means, covs, mask))
 
 
+_EPS_ROOT = 1e-16
+
+
 @partial(jax.jit, static_argnames=("n_steps", "optimize_weights"))
 def _refine(gm, target, n_steps, learning_rate, optimize_weights):
     mask = gm.mask & (gm.weights > 0)
     total = jnp.sum(jnp.where(gm.mask, gm.weights, 0.0))
     p0 = _to_params(gm._replace(mask=mask))
-    opt = optax.adam(learning_rate)
+    # eps_root keeps d sqrt(nu)/d nu finite where a gradient entry is exactly 0 (padded slots, fixed
+    # weights): without it the derivative w.r.t. the learning rate is 0 * inf = NaN
+    opt = optax.adam(learning_rate, eps_root=_EPS_ROOT)
 
     def loss(p):
         return ise(target, _from_params(p, mask, total))
@@ -84,6 +90,7 @@ def _refine(gm, target, n_steps, learning_rate, optimize_weights):
     return out, make_info(gm, out, labels, cost=best_v, aux={"initial_ise": v0, "trace": trace})
 
 
+@_util.guard_nan(learning_rate=1e-2)
 def ise_refine(
     gm: GaussianMixture,
     target: GaussianMixture,
@@ -123,6 +130,9 @@ def ise_refine(
 class Refined(Stateless):
     """A reducer followed by :func:`ise_refine` against the reducer's input.
 
+    A traced NaN ``learning_rate`` skips the refinement (the base reduction is returned unrefined)
+    and sets ``info.invalid_threshold``; a NaN threshold of ``base`` is flagged by ``base``.
+
     Attributes:
         base: any Reducer config (a pytree; its thresholds stay dynamic).
         n_steps: static optimiser steps. learning_rate: dynamic Adam step size.
@@ -132,9 +142,10 @@ class Refined(Stateless):
     n_steps: int = static_field(200)
     learning_rate: Any = 1e-2
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         red, info = self.base(gm, key=key)
         out, rinfo = ise_refine(red, gm, n_steps=self.n_steps, learning_rate=self.learning_rate)
         return out, info._replace(
-            n_out=rinfo.n_out, cost=rinfo.cost, aux={**info.aux, "initial_ise": rinfo.aux["initial_ise"]}
+            n_out=rinfo.n_out, cost=rinfo.cost, aux={**info.aux, "initial_ise": rinfo.aux["initial_ise"]},
+            invalid_threshold=info.invalid_threshold | rinfo.invalid_threshold,
         )

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import _validate
-from gmjax._types import Array, ArrayLike
+from gmjax._types import Array, ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction.base import ReductionInfo, make_info
 from gmjax.reduction.clustering import centre_distances, gauss_cluster, similarity_thresholds
@@ -149,7 +149,7 @@ def censored_gates(gm: GaussianMixture, rho: ArrayLike, temperature: ArrayLike, 
     return jnp.where(gm.mask, g_rank[rank], 0.0)
 
 
-def negligible_floor(temperature: ArrayLike, mode: str, dtype) -> Array:
+def negligible_floor(temperature: ArrayLike, mode: str, dtype: DTypeLike) -> Array:
     """``eps²`` of ``dtype`` for a relaxed (``"soft"``, ``T > 0``) gate, else 0 (see :func:`gated_prune`)."""
     eps2 = jnp.asarray(jnp.finfo(dtype).eps ** 2, dtype)
     if mode != "soft":
@@ -160,7 +160,7 @@ def negligible_floor(temperature: ArrayLike, mode: str, dtype) -> Array:
 # ----------------------------------------------------------------------------- gated pruning
 
 
-def select_kept(gm: GaussianMixture, keep: Array, w: Array, capacity: int):
+def select_kept(gm: GaussianMixture, keep: Array, w: Array, capacity: int) -> tuple[Array, Array, Array]:
     """Order the kept slots by weight, heaviest first (ties: lower slot index), in ``capacity`` slots.
 
     Shared by the hard pruners of :mod:`gmjax.reduction` and :func:`gated_prune`.

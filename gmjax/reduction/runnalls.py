@@ -13,9 +13,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction._greedy import (
     clean_upper,
@@ -25,12 +25,13 @@ from gmjax.reduction._greedy import (
     sequential,
     upper_argmin,
 )
+from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]
 
 
-def runnalls_cost(wi, mi, Pi, wj, mj, Pj, ldi=None, ldj=None):
+def runnalls_cost(wi: Array, mi: Array, Pi: Array, wj: Array, mj: Array, Pj: Array, ldi: Array | None = None, ldj: Array | None = None) -> Array:
     """Runnalls' upper bound on the KL discrimination caused by merging ``i`` and ``j``.
 
     ``B(i, j) = 1/2 [(w_i + w_j) log det P_ij - w_i log det P_i - w_j log det P_j]`` with ``P_ij``
@@ -69,6 +70,7 @@ def _runnalls_core(gm, num_out, threshold, capacity):
 
 
 
+@_util.guard_nan(threshold=float("inf"))
 def runnalls(
     gm: GaussianMixture,
     num_out: int,
@@ -107,6 +109,6 @@ class Runnalls(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return runnalls(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)
 

@@ -8,17 +8,18 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, moments
 from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
+from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["salmond", "salmond_cost", "Salmond"]
 
 
-def salmond_cost(wi, mi, wj, mj, Pinv_total):
+def salmond_cost(wi: Array, mi: Array, wj: Array, mj: Array, Pinv_total: Array) -> Array:
     """Salmond's joining distance ``D^2 = w_i w_j / (w_i + w_j) (m_i - m_j)^T P^{-1} (m_i - m_j)``.
 
     ``P`` is the covariance of the whole (normalised) mixture (Salmond 1990, "Mixture reduction
@@ -55,6 +56,7 @@ def _salmond_core(gm, num_out, threshold, capacity):
 
 
 
+@_util.guard_nan(threshold=float("inf"))
 def salmond(
     gm: GaussianMixture,
     num_out: int,
@@ -82,6 +84,6 @@ class Salmond(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return salmond(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)
 

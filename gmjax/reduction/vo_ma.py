@@ -8,9 +8,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
@@ -56,6 +56,7 @@ def _vo_ma(gm, prune_threshold, merge_threshold, max_components, capacity):
     )
 
 
+@_util.guard_nan(prune_threshold=1e-5, merge_threshold=4.0)
 def vo_ma(
     gm: GaussianMixture,
     prune_threshold: Any = 1e-5,
@@ -104,7 +105,7 @@ class VoMa(Stateless):
     max_components: int | None = static_field(None)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return vo_ma(
             gm, self.prune_threshold, self.merge_threshold, self.max_components,
             capacity=self.capacity, key=key,

@@ -9,17 +9,18 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate
-from gmjax import gaussian
+from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction._greedy import finish, greedy_steps, init_state
+from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["west", "west_distance", "West"]
 
 
-def west_distance(mi, Pi, mj, Pj, metric: str):
+def west_distance(mi: Array, Pi: Array, mj: Array, Pj: Array, metric: str) -> Array:
     """West's nearness of component ``j`` to the selected component ``i``.
 
     ``"kl"``: ``KL(N_i || N_j)``; ``"ise"``: ``ISE(N_i, N_j) = J_ii + J_jj - 2 J_ij`` of the
@@ -52,6 +53,7 @@ def _west(gm, num_out, threshold, capacity, metric, enhanced):
     return finish(gm, s, n_steps, capacity)
 
 
+@_util.guard_nan(threshold=float("inf"))
 def west(
     gm: GaussianMixture,
     num_out: int,
@@ -88,7 +90,7 @@ class West(Stateless):
     enhanced: bool = static_field(False)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm, *, key=None):
+    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
         return west(
             gm, self.num_out, self.threshold, metric=self.metric, enhanced=self.enhanced,
             capacity=self.capacity, key=key,

@@ -7,8 +7,8 @@ objects; the paper, its section and its equation numbers are in each module's do
 =========================  ========================================================================
 module                     what it models (paper)
 =========================  ========================================================================
-``jump_system``            scalar measurement-jump system, glint process noise (Xu et al. 2020, PCM; Table 7)
-``glint_range_bearing``    range-bearing tracking of a manoeuvring target in glint noise (Xu et al. 2020; Table 8)
+``jump_system``            scalar measurement-jump system, glint process noise (Xu et al., PCM; Table 7)
+``glint_range_bearing``    range-bearing tracking of a manoeuvring target in glint noise (Xu et al., PCM; Table 8)
 ``gamma_system``           scalar system with Gamma process noise (Liu et al., AGSSCKF; Table 2)
 ``bearings_only``          two-sensor bearings-only tracking of a turning target (Liu et al.; Table 3)
 ``manoeuvring_target``     circular motion and step manoeuvre, IMM of CS and CT models (Xu et al. 2019, GMRCM)

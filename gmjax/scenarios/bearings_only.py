@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmjax._types import DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import Scenario, StateSpaceModel
 
@@ -58,7 +59,7 @@ def bearings_only(
     n_steps: int = 500,
     bearing_std: float = 0.1,
     zero_mean_noise: bool = False,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> Scenario:
     """Bearings-only tracking with two angle sensors (seed 001 §4.2, eqs 48–52; Table 3, Fig. 3).
 

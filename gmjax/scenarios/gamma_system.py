@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import mixture as gmm
+from gmjax._types import DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import Scenario, StateSpaceModel
 
@@ -24,7 +25,7 @@ def gamma_system(
     gamma_scale: float = 2.0,
     switch_step: int = 30,
     n_steps: int = 60,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> Scenario:
     """1-D system with Gamma process noise (seed 001 eqs 44–47; Table 2, Fig. 1).
 

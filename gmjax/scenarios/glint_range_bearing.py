@@ -1,4 +1,4 @@
-"""Range-bearing tracking of a manoeuvring target in glint noise, Xu et al. 2020 (PCM; seed 000 §IV-D,
+"""Range-bearing tracking of a manoeuvring target in glint noise, Xu et al. (PCM; seed 000 §IV-D,
 eqs 51-53, Table 8)."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax import mixture as gmm
+from gmjax._types import DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import Scenario, StateSpaceModel
 from gmjax.models.noise import laplace, mixture_sampler
@@ -22,7 +23,7 @@ def range_bearing(
     acceleration_y: float = 70.0,
     glint_frequency: float = 0.02,
     glint_std_factor: float = 3.0,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> Scenario:
     """4-D range–bearing tracking with glint measurement noise (seed 000 eqs 51–53; Table 8).
 

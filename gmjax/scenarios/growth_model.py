@@ -9,7 +9,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from gmjax._types import Array
+from gmjax._types import Array, DTypeLike
 from gmjax.mixture import GaussianMixture, from_gaussian
 from gmjax.pcrb import GMMPCRBConfig, PCRBModel
 from gmjax.split import SplitLibrary, gauss_hermite_library, split_repeated
@@ -34,7 +34,7 @@ def _ungm_jacobian(x: Array, n: Array) -> Array:
 
 
 def ungm(
-    *, q: float = 10.0, r: float = 1.0, prior_mean: float = 0.0, prior_var: float = 1.0, dtype=None
+    *, q: float = 10.0, r: float = 1.0, prior_mean: float = 0.0, prior_var: float = 1.0, dtype: DTypeLike | None = None
 ) -> PCRBModel:
     """The 1-D benchmark of seed 002 §V-B (eqs 79-82), with the paper's defaults.
 

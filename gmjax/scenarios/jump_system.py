@@ -1,4 +1,4 @@
-"""The scalar measurement-jump system of Xu et al. 2020 (PCM; seed 000 §IV-C, eqs 47-50, Table 7)."""
+"""The scalar measurement-jump system of Xu et al. (PCM; seed 000 §IV-C, eqs 47-50, Table 7)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax import mixture as gmm
+from gmjax._types import DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import Scenario, StateSpaceModel
 from gmjax.models.noise import glint
@@ -25,7 +26,7 @@ def jump_system(
     laplace_scale: float = 3.0,
     switch_step: int = 80,
     n_steps: int = 120,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> Scenario:
     """Scalar measurement-jump system (seed 000 eqs 45–50; Table 7, Figs 9–11).
 

@@ -7,10 +7,9 @@ Returns a :class:`gmjax.pcrb.PCRBModel` (additive Gaussian noises, the paper's t
 
 from __future__ import annotations
 
-
 import jax.numpy as jnp
 
-from gmjax._types import ArrayLike
+from gmjax._types import ArrayLike, DTypeLike
 from gmjax.mixture import from_gaussian
 from gmjax.pcrb import PCRBModel
 
@@ -18,7 +17,7 @@ __all__ = ["linear_system"]
 
 
 def linear_system(
-    F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, m0: ArrayLike, P0: ArrayLike, *, dtype=None
+    F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, m0: ArrayLike, P0: ArrayLike, *, dtype: DTypeLike | None = None
 ) -> PCRBModel:
     """The linear Gaussian model of seed 002 §V-A (eqs 74-75), time-invariant.
 

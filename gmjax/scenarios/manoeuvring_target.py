@@ -46,11 +46,13 @@ The paper (Xu, Fang, Wu, Zhang, J. NUDT 2019, in Chinese) gives, for §4.2:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmjax._types import Array
+from gmjax._types import Array, DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import Scenario, StateSpaceModel
 from gmjax.models.noise import mixture_sampler
@@ -135,7 +137,7 @@ def _mixtures(dtype):
 
 
 def imm_models(*, alpha: float = 0.01, omega: float = 0.02 * np.pi, dt: float = 1.0,
-               dtype=None) -> tuple[StateSpaceModel, StateSpaceModel]:
+               dtype: DTypeLike | None = None) -> tuple[StateSpaceModel, StateSpaceModel]:
     """The CS and CT models of the §4.2 IMM (GM prior, ``Q``, GM measurement noise, ``H = I_3``)."""
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
     q, r, prior = _mixtures(dtype)
@@ -159,7 +161,7 @@ def tracking(
     dt: float = 1.0,
     duration: float = 200.0,
     truth_process_noise: bool = False,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> Scenario:
     """The §4.2 scenario ``motion`` (``"circular"`` or ``"step"``); see the module docstring.
 
@@ -217,11 +219,11 @@ def tracking(
     )
 
 
-def circular_motion(**kwargs) -> Scenario:
+def circular_motion(**kwargs: Any) -> Scenario:
     """§4.2.1: :func:`tracking` with ``motion="circular"``."""
     return tracking("circular", **kwargs)
 
 
-def step_maneuver(**kwargs) -> Scenario:
+def step_maneuver(**kwargs: Any) -> Scenario:
     """§4.2.2: :func:`tracking` with ``motion="step"``."""
     return tracking("step", **kwargs)

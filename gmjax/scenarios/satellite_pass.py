@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmjax._types import Array
+from gmjax._types import Array, ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture, from_gaussian
 from gmjax.pcrb import GMMPCRBConfig, PCRBModel
 
@@ -142,8 +142,8 @@ def _enu_matrix(lat_deg: float, lon_deg: float) -> np.ndarray:
     )
 
 
-def radar_measurement(x: Array, t: Array, theta0: float, *, range_rate: bool = False,
-                      site=RADAR_SITE) -> Array:
+def radar_measurement(x: Array, t: ArrayLike, theta0: float, *, range_rate: bool = False,
+                      site: tuple[float, float, float] = RADAR_SITE) -> Array:
     """Range (km), azimuth, elevation (rad) and optionally range rate (km/s) of an inertial state.
 
     The Earth (and the site) rotates about z with ``theta(t) = theta0 + omega_E t``; the
@@ -235,7 +235,7 @@ def _arc_elevations(x_t0, theta0, dt, max_steps):
 
 
 def satellite(*, range_rate: bool = False, dt: float = 5.0, max_steps: int = 400,
-              num_split_sigma: float = 0.25, dtype=None) -> SatelliteScenario:
+              num_split_sigma: float = 0.25, dtype: DTypeLike | None = None) -> SatelliteScenario:
     """Seed 002 §V-C: two-body orbit, ground radar, 49-component prior.
 
     Readings where the paper is silent: (i) the epoch (Earth angle) is not given, so ``theta0`` is

@@ -3,13 +3,14 @@ of Pishdad & Labeau (active-cluster reduction; seed 004 §V, Tables I-II)."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from gmjax import mixture as gmm
+from gmjax._types import ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import Scenario, StateSpaceModel
 
@@ -38,9 +39,9 @@ DT = 0.1080  # seconds, the UWB system's measurement interval (eq 18 footnote 4)
 class ScalarGM(NamedTuple):
     """A univariate mixture ``(weights, means, variances)``."""
 
-    weights: tuple[float, ...]
-    means: tuple[float, ...]
-    variances: tuple[float, ...]
+    weights: ArrayLike  # (C,): tuples in the tables, arrays once computed
+    means: ArrayLike
+    variances: ArrayLike
 
 
 # Table I: weights and unscaled means (multiplied by c); every cluster has variance 1 (eqs 25-27).
@@ -72,12 +73,12 @@ def random_walk_velocity(
     measurement: ScalarGM,
     *,
     dt: float = DT,
-    prior_cov=((100.0, 0.0), (0.0, 100.0)),
+    prior_cov: ArrayLike = ((100.0, 0.0), (0.0, 100.0)),
     n_steps: int = 100,
     name: str = "rwv",
     description: str = "",
     jitter: float = 1e-9,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> Scenario:
     """The linear model of seed 004 eqs 18–22 with GM process and measurement noise.
 
@@ -128,7 +129,7 @@ def random_walk_velocity(
     )
 
 
-def synthetic(model: int, c: float, **kwargs) -> Scenario:
+def synthetic(model: int, c: float, **kwargs: Any) -> Scenario:
     """Seed 004 Table I Model 1, 2 or 3 with mean scale ``c`` (the same GM for process and
     measurement noise, every cluster of variance 1, eqs 25–29)."""
     if model not in SYNTHETIC_MODELS:
@@ -143,7 +144,7 @@ def synthetic(model: int, c: float, **kwargs) -> Scenario:
     )
 
 
-def uwb(axis: str, **kwargs) -> Scenario:
+def uwb(axis: str, **kwargs: Any) -> Scenario:
     """Seed 004 Table II noise models for the ``x`` or ``y`` axis (simulated data, not the paper's recordings)."""
     if axis not in UWB_NOISES:
         raise ValueError(f"axis: expected 'x' or 'y', got {axis!r}")
@@ -180,13 +181,13 @@ def _as_arrays(gm: ScalarGM, dtype) -> ScalarGM:
     return ScalarGM(*(jnp.asarray(a, dtype) for a in gm))
 
 
-def noise_gain(dt: float = DT, dtype=None) -> jax.Array:
+def noise_gain(dt: float = DT, dtype: DTypeLike | None = None) -> jax.Array:
     """``G = (dt, 1)^T`` of shape ``(2, 1)``: the process noise is ``v_k = G v_k`` with scalar ``v_k`` (eq 20)."""
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
     return jnp.asarray([[dt], [1.0]], dtype)
 
 
-def synthetic_noise(model: int, c) -> ScalarGM:
+def synthetic_noise(model: int, c: ArrayLike) -> ScalarGM:
     """Table I Model ``model`` with mean scale ``c`` as arrays (``c`` may be traced, e.g. vmapped)."""
     if model not in SYNTHETIC_MODELS:
         raise ValueError(f"model: expected 1, 2 or 3, got {model!r}")
@@ -204,9 +205,9 @@ def rwv_model(
     measurement: ScalarGM,
     *,
     dt: float = DT,
-    prior_cov=((100.0, 0.0), (0.0, 100.0)),
+    prior_cov: ArrayLike = ((100.0, 0.0), (0.0, 100.0)),
     jitter: float = 1e-9,
-    dtype=None,
+    dtype: DTypeLike | None = None,
 ) -> StateSpaceModel:
     """The model of :func:`random_walk_velocity` (eqs 18–22) built with ``jnp`` only, so the noise
     parameters may be traced (one compiled kernel for a whole sweep over ``c``).
@@ -248,14 +249,14 @@ def simulate_labeled(
     *,
     n_steps: int = 100,
     dt: float = DT,
-    prior_cov=((100.0, 0.0), (0.0, 100.0)),
-    dtype=None,
+    prior_cov: ArrayLike = ((100.0, 0.0), (0.0, 100.0)),
+    dtype: DTypeLike | None = None,
 ) -> LabeledRun:
     """Simulate eqs 18–22 and record the active noise clusters (traceable; ``vmap`` it over keys).
 
     ``x_0 ~ N(0, prior_cov)``; at step ``k = 1..T`` draw ``i ~ w``, ``v = u_i + sqrt(sigma_i) n``,
     ``x_k = F x_{k-1} + v (dt, 1)`` (exactly on the noise line of eq 20, no jitter), then
-    ``j ~ p``, ``z_k = x_k[0] + b_j + sqrt(R_j) n'``. Same distribution as :func:`simulate` on
+    ``j ~ p``, ``z_k = x_k[0] + b_j + sqrt(R_j) n'``. Same distribution as :func:`~gmjax.models.simulate` on
     :func:`random_walk_velocity`, but also returns ``(i, j)`` for the Matched filter.
     """
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
@@ -305,7 +306,7 @@ def _scalar_parts(gm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return w / w.sum(), m, v
 
 
-def moment_matched(gm) -> tuple[float, float]:
+def moment_matched(gm: ScalarGM | GaussianMixture) -> tuple[float, float]:
     """``(mean, variance)`` of the single Gaussian with the mixture's first two moments."""
     w, m, v = _scalar_parts(gm)
     mu = float(w @ m)
@@ -320,14 +321,14 @@ def _log_gm(x: np.ndarray, w, m, v) -> np.ndarray:
 
 
 def kl_to_moment_matched(
-    gm,
+    gm: ScalarGM | GaussianMixture,
     *,
     method: str = "quadrature",
     key: jax.Array | None = None,
     n_samples: int = 200_000,
     n_grid: int | None = None,
     return_stderr: bool = False,
-):
+) -> float | tuple[float, float]:
     """``KL(p || q)``, ``p`` a scalar Gaussian mixture and ``q`` its moment-matched Gaussian (§V-A).
 
     The paper measures multimodality by this divergence, estimated "using Monte-Carlo simulations
@@ -386,7 +387,7 @@ def kl_to_moment_matched(
     return (kl, se) if return_stderr else kl
 
 
-def kl_curve(model: int, cs) -> np.ndarray:
+def kl_curve(model: int, cs: ArrayLike) -> np.ndarray:
     """Quadrature ``KL(p || q)`` of Table I Model ``model`` at each scale ``c`` in ``cs``."""
     if model not in SYNTHETIC_MODELS:
         raise ValueError(f"model: expected 1, 2 or 3, got {model!r}")
