@@ -102,7 +102,7 @@ def test_extraction_rounds_weights_and_soft_extraction_matches():
     w = [0.4, 0.6, 1.4, 1.6, 2.7, 0.0]
     gm = _gm(w, np.arange(12.0).reshape(6, 2), np.stack([np.eye(2)] * 6), [1, 1, 1, 1, 1, 0])
     est = mt.extract(gm, 0.5, max_estimates=10)
-    assert int(est.count) == 0 + 1 + 1 + 2 + 3 and not bool(est.overflow)
+    assert int(est.n_estimates) == 0 + 1 + 1 + 2 + 3 and not bool(est.overflow)
     got = sorted(map(tuple, np.asarray(est.states)[np.asarray(est.mask)]))
     want = sorted([(2.0, 3.0), (4.0, 5.0), (6.0, 7.0), (6.0, 7.0), (8.0, 9.0), (8.0, 9.0), (8.0, 9.0)])
     assert got == want
@@ -277,7 +277,7 @@ def test_simulation_counts_and_overflow_flag(linear):
     assert np.any(st.overflow)
 
 
-@pytest.mark.parametrize("local", ["ekf", "ukf"])
+@pytest.mark.parametrize("local", ["ekf", pytest.param("ukf", marks=pytest.mark.slow)])
 def test_range_bearing_nonlinear_components_track(local):
     """EKF / UKF components on the range-bearing scenario: a smoke check against the truth.
 

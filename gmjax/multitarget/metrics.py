@@ -188,19 +188,18 @@ def ospa(x, y, x_mask=None, y_mask=None, *, c: float = 100.0, p: float = 1.0) ->
     y, y_mask = _check_set(y, y_mask, "y")
     dt = _dtype(x, y)
     x, y = x.astype(dt), y.astype(dt)
-    c = jnp.asarray(c, dt)
-    p = jnp.asarray(p, dt)
+    c_, p_ = jnp.asarray(c, dt), jnp.asarray(p, dt)
     if x.shape[0] == 0 and y.shape[0] == 0:
         return jnp.zeros((), dt)
-    dc = jnp.minimum(pairwise_distances(x, y), c) ** p
-    C, _, _, _ = _square(dc, x_mask, y_mask, c**p)
+    dc = jnp.minimum(pairwise_distances(x, y), c_) ** p_
+    C, _, _, _ = _square(dc, x_mask, y_mask, c_**p_)
     col = linear_sum_assignment(C)
     total = jnp.sum(C[jnp.arange(C.shape[0]), col])
     n = jnp.maximum(jnp.sum(x_mask), jnp.sum(y_mask)).astype(dt)
     ok = n > 0
     val = jnp.where(ok, total / jnp.where(ok, n, 1.0), 0.0)
     pos = val > 0
-    return jnp.where(pos, jnp.where(pos, val, 1.0) ** (1.0 / p), 0.0)
+    return jnp.where(pos, jnp.where(pos, val, 1.0) ** (1.0 / p_), 0.0)
 
 
 class GOSPA(NamedTuple):

@@ -23,8 +23,9 @@ Design choices (see also the builder :func:`gm_phd`):
   noises, the reducer config, the extraction threshold), so ``jax.vmap`` over parameter sets and
   ``jax.grad`` w.r.t. thresholds go through :func:`run`. The measurement of a step is a padded set
   ``Z`` ``(M, m)``: **a row holding a NaN is an absent measurement** (the set's mask is
-  ``~isnan(Z).any(-1)``), so a padded set needs no separate mask and a set of only NaN rows is an
-  empty scan. ``filters.run`` wants ``(T, m)`` measurements, so this module has its own
+  ``isfinite(Z).all(-1)``), so a padded set needs no separate mask and a set of only NaN rows is an
+  empty scan. A row with an infinite entry is ignored as well and raises the
+  ``nonfinite_measurement`` flag (NaN padding does not: it is how a set is padded). ``filters.run`` wants ``(T, m)`` measurements, so this module has its own
   :func:`run` over ``(T, M, m)`` (the same ``lax.scan`` and key splitting).
 * **Components** are predicted and updated by any local filter of :mod:`gmjax.filters.local`
   (``"kf"``, ``"ekf"``, ``"ukf"``, ``"ckf"``, ``"ghkf"``, ``"sgkf"``, ``"sckf"``) via the component-level
@@ -129,13 +130,14 @@ class Estimates(NamedTuple):
     Attributes:
         states: ``(E, d)`` extracted means (0 in padded rows).
         mask: ``(E,)`` which rows are estimates.
-        count: ``()`` int32, the number extracted before padding (may exceed ``E``: then ``overflow``).
+        n_estimates: ``()`` int32, the number extracted before padding (may exceed ``E``: then
+            ``overflow``).
         overflow: ``()`` bool, more estimates than ``E`` (the heaviest components come first).
     """
 
     states: Array
     mask: Array
-    count: Array
+    n_estimates: Array
     overflow: Array
 
 
@@ -151,8 +153,9 @@ def empty_intensity(capacity: int, dim: int, dtype=None) -> GaussianMixture:
 
 
 def measurement_mask(zs: Array) -> Array:
-    """``(..., M)`` bool: which rows of a padded measurement set ``(..., M, m)`` are measurements."""
-    return ~jnp.any(jnp.isnan(zs), axis=-1)
+    """``(..., M)`` bool: which rows of a padded measurement set ``(..., M, m)`` are measurements (finite
+    rows; a NaN row is an absent measurement, a row with an infinite entry is ignored and flagged)."""
+    return jnp.all(jnp.isfinite(zs), axis=-1)
 
 
 # ----------------------------------------------------------------------------- the recursion
@@ -413,7 +416,8 @@ def gm_phd(
         with ``mean``/``cov`` the moments of the normalised intensity (not a target estimate),
         ``loglik`` the Poisson approximation of ``log p(Z_k | Z_{1:k-1})``, ``n_components``,
         ``flags`` (``overflow``: truncation above tolerance, reducer or capacity overflow, or more
-        estimates than ``E``; ``repaired``; ``degenerate``: a non-finite total weight), ``reduction``
+        estimates than ``E``; ``repaired``; ``degenerate``: a non-finite total weight;
+        ``nonfinite_measurement``: a row with an infinite entry, ignored), ``reduction``
         (the reducer's info) and ``extra``: ``cardinality`` (sum of the updated weights, before
         reduction, eq 29's ``N_k``), ``cardinality_reduced`` (after), ``n_estimates``, ``estimates``
         ``(E, d)``, ``estimate_mask`` ``(E,)``, ``truncated_mass`` and ``n_measurements``.
@@ -506,11 +510,11 @@ def gm_phd(
         mean, cov = gmm.moments(post)
         overflow = (heaviest_dropped > params.truncation_tolerance) | rinfo.overflow | cap_overflow
         overflow = overflow | est.overflow
-        flags = StepFlags(upd.repaired, overflow, ~jnp.isfinite(cardinality))
+        flags = StepFlags(upd.repaired, overflow, ~jnp.isfinite(cardinality), jnp.any(jnp.isinf(zs)))
         extra = {
             "cardinality": cardinality,
             "cardinality_reduced": gmm.total_weight(post),
-            "n_estimates": est.count,
+            "n_estimates": est.n_estimates,
             "estimates": est.states,
             "estimate_mask": est.mask,
             "truncated_mass": truncated,
