@@ -29,12 +29,12 @@ more than leaving both unmatched.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from gmjax._types import Array
+from gmjax._types import Array, ArrayLike
 
 __all__ = [
     "linear_sum_assignment",
@@ -172,7 +172,10 @@ def _dtype(x, y):
     return dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
 
 
-def ospa(x, y, x_mask=None, y_mask=None, *, c: float = 100.0, p: float = 1.0) -> Array:
+def ospa(
+    x: ArrayLike, y: ArrayLike, x_mask: ArrayLike | None = None, y_mask: ArrayLike | None = None, *,
+    c: Any = 100.0, p: Any = 1.0,
+) -> Array:
     """OSPA distance of order ``p`` with cut-off ``c`` between two padded sets.
 
     Args:
@@ -221,7 +224,10 @@ class GOSPA(NamedTuple):
     n_false: Array
 
 
-def gospa(x, y, x_mask=None, y_mask=None, *, c: float = 100.0, p: float = 1.0) -> GOSPA:
+def gospa(
+    x: ArrayLike, y: ArrayLike, x_mask: ArrayLike | None = None, y_mask: ArrayLike | None = None, *,
+    c: Any = 100.0, p: Any = 1.0,
+) -> GOSPA:
     """GOSPA with ``alpha = 2`` between estimates ``x`` and the truth ``y`` (padded sets).
 
     Args:
@@ -240,7 +246,10 @@ def gospa(x, y, x_mask=None, y_mask=None, *, c: float = 100.0, p: float = 1.0) -
     return _gospa(x.astype(dt), y.astype(dt), x_mask, y_mask, weights, jnp.asarray(c, dt), jnp.asarray(p, dt))
 
 
-def soft_gospa(x, y, existence, y_mask=None, *, c: float = 100.0, p: float = 1.0) -> GOSPA:
+def soft_gospa(
+    x: ArrayLike, y: ArrayLike, existence: ArrayLike, y_mask: ArrayLike | None = None, *,
+    c: Any = 100.0, p: Any = 1.0,
+) -> GOSPA:
     """GOSPA (``alpha = 2``) of estimates with existence weights ``e_i`` in ``[0, 1]``: differentiable.
 
     The cost of an assignment ``γ`` of estimates to true points is

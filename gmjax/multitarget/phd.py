@@ -141,7 +141,7 @@ class Estimates(NamedTuple):
     overflow: Array
 
 
-def empty_intensity(capacity: int, dim: int, dtype=None) -> GaussianMixture:
+def empty_intensity(capacity: int, dim: int, dtype: Any = None) -> GaussianMixture:
     """An intensity with no component (``capacity`` padded slots)."""
     dtype = jnp.result_type(float) if dtype is None else dtype
     return GaussianMixture(

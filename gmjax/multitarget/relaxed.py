@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture, sanitize
-from gmjax.reduction.base import EmptyState, make_info
+from gmjax.reduction.base import EmptyState, ReductionInfo, make_info
 from gmjax.reduction.relax import negligible_floor, soft_step, validate_mode
 
 __all__ = ["RelaxedVoMa", "relaxed_vo_ma"]
@@ -49,7 +49,7 @@ def relaxed_vo_ma(
     *,
     max_components: int | None = None,
     mode: str = "soft",
-):
+) -> tuple[GaussianMixture, ReductionInfo]:
     """Relaxed Vo–Ma reduction (module docstring).
 
     Args:
@@ -150,12 +150,16 @@ class RelaxedVoMa:
         del capacity
         return EmptyState()
 
-    def reduce(self, gm, state, *, key=None):
+    def reduce(
+        self, gm: GaussianMixture, state: Any, *, key: jax.Array | None = None
+    ) -> tuple[GaussianMixture, Any, ReductionInfo]:
         """``(reduced, state, info)``."""
         out, info = self(gm, key=key)
         return out, state, info
 
-    def __call__(self, gm, *, key=None):
+    def __call__(
+        self, gm: GaussianMixture, *, key: jax.Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         del key
         return relaxed_vo_ma(
             gm, self.prune_threshold, self.merge_threshold, self.prune_temperature,

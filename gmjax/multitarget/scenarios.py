@@ -17,14 +17,14 @@ measurements the last clutter points are dropped **and** ``overflow`` is set for
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from gmjax import gaussian
-from gmjax._types import Array, PRNGKey
+from gmjax._types import Array, ArrayLike, PRNGKey
 from gmjax.filters._core import gaussian_moments
 from gmjax.mixture import GaussianMixture, from_gaussian
 from gmjax.models.base import StateSpaceModel
@@ -164,7 +164,9 @@ def simulate(scenario: MultiTargetScenario, key: PRNGKey) -> MultiTargetSample:
 # ----------------------------------------------------------------------------- models
 
 
-def cv_model(sigma_v: float, measurement, R, *, dt: float = 1.0, dtype=None) -> StateSpaceModel:
+def cv_model(
+    sigma_v: float, measurement: Any, R: ArrayLike, *, dt: float = 1.0, dtype: Any = None
+) -> StateSpaceModel:
     """2-D constant velocity, state ``[p_x, p_y, v_x, v_y]``, with the discrete white-noise acceleration
     ``Q = sigma_v^2 [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]`` (Vo & Ma 2006, §VI).
 
@@ -215,7 +217,7 @@ def vo_ma_linear(
     max_measurements: int = 32,
     detection_prob: float = 0.98,
     survival_prob: float = 0.99,
-    dtype=None,
+    dtype: Any = None,
 ) -> MultiTargetScenario:
     """The linear scenario of Vo & Ma 2006, §VI-A (Example 1), without spawning.
 
@@ -269,7 +271,7 @@ def range_bearing(
     max_measurements: int = 32,
     sigma_range: float = 5.0,
     sigma_bearing: float = 0.005,
-    dtype=None,
+    dtype: Any = None,
 ) -> MultiTargetScenario:
     """A range-bearing variant (EKF/UKF components): the Vo & Ma CV dynamics seen by a radar at the origin.
 
