@@ -216,7 +216,7 @@ def _cast_checked(w: np.ndarray, m: np.ndarray, P: np.ndarray, dtype: np.dtype):
         total = np.sum(wc)
     if not np.isfinite(total):
         raise ValueError(f"weights: their sum overflows {name} (normalize them or use a wider dtype)")
-    _validate_components(*held, np.ones(w.shape[0], bool), where=f" in {name}")
+    _validate_components(held[0], held[1], held[2], np.ones(w.shape[0], bool), where=f" in {name}")
     return wc, mc, Pc
 
 
@@ -454,8 +454,8 @@ def marginal(gm: GaussianMixture, dims: Sequence[int]) -> GaussianMixture:
         raise ValueError(f"dims: {list(idx.tolist())} out of range for a {d}-D mixture (valid: 0..{d - 1})")
     if np.unique(idx % d).size != idx.size:
         raise ValueError(f"dims: repeated dimension in {list(idx.tolist())} (the covariance would be singular)")
-    dims = jnp.asarray(idx % d)
-    return GaussianMixture(gm.weights, gm.means[:, dims], gm.covs[:, dims][:, :, dims], gm.mask)
+    sel = jnp.asarray(idx % d)
+    return GaussianMixture(gm.weights, gm.means[:, sel], gm.covs[:, sel][:, :, sel], gm.mask)
 
 
 def affine(gm: GaussianMixture, A: ArrayLike, b: ArrayLike | None = None) -> GaussianMixture:

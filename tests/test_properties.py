@@ -192,7 +192,6 @@ def test_moments_and_gradients_are_finite_and_padding_gets_no_gradient(gm):
 
 from test_contract import REDUCERS  # noqa: E402
 
-
 # a moment-preserving merge of a partition keeps the mixture's mean and covariance (seed 002 eqs 70-72)
 MOMENT_PRESERVING = {"runnalls", "west", "salmond", "gmrc", "kmeans", "brute_force"}
 _HEAVY = {"williams", "brute_force", "pcm", "gmrcm", "refined"}

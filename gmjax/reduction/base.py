@@ -38,7 +38,7 @@ class ReductionInfo(NamedTuple):
     overflow: Array
     cost: Array
     aux: dict[str, Any]
-    invalid_threshold: Array = False
+    invalid_threshold: Array = False  # type: ignore[assignment]  # a bool default, an array once made
 
 
 def make_info(

@@ -17,6 +17,7 @@ from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction import _util
 from gmjax.reduction._greedy import (
     clean_upper,
     finish,
@@ -25,7 +26,6 @@ from gmjax.reduction._greedy import (
     sequential,
     upper_argmin,
 )
-from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]

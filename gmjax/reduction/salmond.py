@@ -12,8 +12,8 @@ from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, moments
-from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
 from gmjax.reduction import _util
+from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["salmond", "salmond_cost", "Salmond"]

@@ -13,8 +13,8 @@ from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
-from gmjax.reduction._greedy import finish, greedy_steps, init_state
 from gmjax.reduction import _util
+from gmjax.reduction._greedy import finish, greedy_steps, init_state
 from gmjax.reduction.base import ReductionInfo, Stateless
 
 __all__ = ["west", "west_distance", "West"]
