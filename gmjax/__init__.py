@@ -23,13 +23,13 @@ from gmjax import metrics as metrics
 from gmjax import mixture as mixture
 from gmjax import models as models
 from gmjax import montecarlo as montecarlo
+from gmjax import multitarget as multitarget
 from gmjax import pcrb as pcrb
 from gmjax import quadrature as quadrature
 from gmjax import reduction as reduction
 from gmjax import scenarios as scenarios
 from gmjax import split as split
 from gmjax import tune as tune
-from gmjax import multitarget as multitarget
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
 
