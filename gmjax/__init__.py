@@ -23,6 +23,7 @@ from gmjax import metrics as metrics
 from gmjax import mixture as mixture
 from gmjax import models as models
 from gmjax import montecarlo as montecarlo
+from gmjax import multitarget as multitarget
 from gmjax import pcrb as pcrb
 from gmjax import quadrature as quadrature
 from gmjax import reduction as reduction
@@ -52,5 +53,6 @@ __all__ = [
     "pcrb",
     "scenarios",
     "tune",
+    "multitarget",
     "__version__",
 ]

@@ -1,0 +1,59 @@
+"""Multi-target filtering: a batched, differentiable GM-PHD filter, scenarios and OSPA/GOSPA.
+
+==================  ===========================================================================
+module              contents
+==================  ===========================================================================
+``phd``             the GM-PHD filter (Vo & Ma 2006) as a :class:`gmjax.filters.Filter`, its
+                    :func:`run` over padded measurement sets, state extraction (hard and relaxed)
+``relaxed``         :class:`RelaxedVoMa`, Vo–Ma pruning and merging with soft gates (differentiable)
+``scenarios``       multi-target scenarios and their simulation (births, deaths, ``P_D``, clutter)
+``metrics``         OSPA, GOSPA (with its decomposition) and a relaxed GOSPA, via an exact
+                    jit-able assignment (Hungarian algorithm)
+==================  ===========================================================================
+"""
+
+from gmjax.multitarget import metrics as metrics
+from gmjax.multitarget import phd as phd
+from gmjax.multitarget import relaxed as relaxed
+from gmjax.multitarget import scenarios as scenarios
+from gmjax.multitarget.metrics import GOSPA as GOSPA
+from gmjax.multitarget.metrics import gospa as gospa
+from gmjax.multitarget.metrics import linear_sum_assignment as linear_sum_assignment
+from gmjax.multitarget.metrics import ospa as ospa
+from gmjax.multitarget.metrics import soft_gospa as soft_gospa
+from gmjax.multitarget.phd import Estimates as Estimates
+from gmjax.multitarget.phd import PHDParams as PHDParams
+from gmjax.multitarget.phd import PHDState as PHDState
+from gmjax.multitarget.phd import extract as extract
+from gmjax.multitarget.phd import gm_phd as gm_phd
+from gmjax.multitarget.phd import run as run
+from gmjax.multitarget.phd import soft_estimates as soft_estimates
+from gmjax.multitarget.relaxed import RelaxedVoMa as RelaxedVoMa
+from gmjax.multitarget.scenarios import MultiTargetScenario as MultiTargetScenario
+from gmjax.multitarget.scenarios import range_bearing as range_bearing
+from gmjax.multitarget.scenarios import simulate as simulate
+from gmjax.multitarget.scenarios import vo_ma_linear as vo_ma_linear
+
+__all__ = [
+    "metrics",
+    "phd",
+    "relaxed",
+    "scenarios",
+    "GOSPA",
+    "gospa",
+    "ospa",
+    "soft_gospa",
+    "linear_sum_assignment",
+    "Estimates",
+    "PHDParams",
+    "PHDState",
+    "extract",
+    "gm_phd",
+    "run",
+    "soft_estimates",
+    "RelaxedVoMa",
+    "MultiTargetScenario",
+    "range_bearing",
+    "simulate",
+    "vo_ma_linear",
+]
