@@ -22,7 +22,7 @@ and the transition from entry ``k`` to ``k + 1`` is the model's step with ``inpu
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -73,7 +73,8 @@ def _sigma_rule(method: Any):
     return rule_getter(method)
 
 
-def predict_with_cross(f, f_jacobian, method: Any):
+def predict_with_cross(f: Callable[[Array, Any], Array], f_jacobian: Callable[[Array, Any], Array] | None,
+                       method: Any) -> Callable[..., tuple[Array, Array, Array]]:
     """``(m (d,), P (d, d), inputs, q_mean, Q) -> (m^-, P^-, C)`` with ``C = Cov(x_k, x_{k+1})``.
 
     Args:

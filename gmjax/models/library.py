@@ -431,7 +431,7 @@ def bearing_range_rate(position_dims: Sequence[int] = (0, 2), velocity_dims: Seq
 
 
 def glint_mixture(R: ArrayLike, frequency: float = 0.1, tail_scale: float = 10.0,
-                  dtype=None) -> GaussianMixture:
+                  dtype: Any = None) -> GaussianMixture:
     """Two-component Gaussian mixture for glint noise: ``(1 - eps) N(0, R) + eps N(0, s^2 R)``.
 
     The wide component models the heavy glint tail (seed 000 §IV-D uses a Gaussian-Laplace glint
@@ -496,7 +496,7 @@ def state_space_model(
     dt: float = 1.0,
     process_noise: GaussianMixture | None = None,
     measurement_noise: GaussianMixture | None = None,
-):
+) -> Any:
     """A :class:`~gmjax.models.StateSpaceModel` from a motion and a measurement model.
 
     ``f(x, inputs)`` propagates over ``inputs.dt`` (``dt`` when the step carries none) and the

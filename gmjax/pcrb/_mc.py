@@ -17,6 +17,7 @@ import numpy as np
 
 from gmjax._progress import Progress
 from gmjax._types import Array, ArrayLike, PRNGKey
+from gmjax.mixture import GaussianMixture
 from gmjax.mixture import sample as sample_mixture
 from gmjax.pcrb._model import PCRBModel, as_pcrb_model, prior_information
 from gmjax.pcrb._noise import noise_information
@@ -70,7 +71,8 @@ def _chunk_sums(model: PCRBModel, key: PRNGKey, n_valid: Array, *, n_steps: int,
     return sums
 
 
-def pcrb_from_expectations(J0: ArrayLike, D11: ArrayLike, EF: ArrayLike, EHRH: ArrayLike, Q) -> Array:
+def pcrb_from_expectations(J0: ArrayLike, D11: ArrayLike, EF: ArrayLike, EHRH: ArrayLike,
+                           Q: ArrayLike | GaussianMixture) -> Array:
     """Run eq 4 from ``J_0`` given ``E[F^T I_Q F]``, ``E[F]`` and ``E[H^T I_R H]`` per step.
 
     ``Q`` is the process-noise covariance or a :class:`~gmjax.mixture.GaussianMixture`; ``I_Q`` is

@@ -9,7 +9,7 @@ converts (and checks) a :class:`StateSpaceModel`.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable, NamedTuple
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,15 +66,15 @@ class PCRBModel(NamedTuple):
     def measurement_dim(self) -> int:
         return self.R.dim if isinstance(self.R, GaussianMixture) else int(np.shape(self.R)[-1])
 
-    def process_information(self, dtype=None) -> Array:
+    def process_information(self, dtype: Any = None) -> Array:
         """``(d, d)`` Fisher information of the process noise (``Q^{-1}`` when Gaussian)."""
         return noise_information(self.Q, dtype=dtype or self.prior.means.dtype)
 
-    def measurement_information(self, dtype=None) -> Array:
+    def measurement_information(self, dtype: Any = None) -> Array:
         """``(m, m)`` Fisher information of the measurement noise (``R^{-1}`` when Gaussian)."""
         return noise_information(self.R, dtype=dtype or self.prior.means.dtype)
 
-    def sample_process_noise(self, key, n: int, dtype) -> Array:
+    def sample_process_noise(self, key: Array, n: int, dtype: Any) -> Array:
         """``(n, d)`` draws of ``w``."""
         if isinstance(self.Q, GaussianMixture):
             return gmm.sample(self.Q, key, n).astype(dtype)
@@ -129,7 +129,7 @@ def _moment_cov(noise) -> np.ndarray:
     return np.asarray(noise, np.float64)
 
 
-def as_pcrb_model(model) -> PCRBModel:
+def as_pcrb_model(model: Any) -> PCRBModel:
     """A :class:`PCRBModel`, converting a :class:`~gmjax.models.StateSpaceModel` (one convention
     for the user: the filters' ``StateSpaceModel``); checked."""
     from gmjax.models.base import StateSpaceModel

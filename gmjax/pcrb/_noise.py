@@ -15,6 +15,8 @@ the score switches between components) for ``d <= 3``, and a fixed-seed Monte Ca
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,7 +33,7 @@ _HALF_WIDTH = 10.0
 _MC_SAMPLES = 200_000
 
 
-def whitened_rule(d: int, n_points: int | None = None, dtype=None) -> tuple[Array, Array]:
+def whitened_rule(d: int, n_points: int | None = None, dtype: Any = None) -> tuple[Array, Array]:
     """Points ``(n, d)`` and weights ``(n,)`` for ``E[g(z)]``, ``z ~ N(0, I_d)``.
 
     A tensor trapezoidal rule on ``[-10, 10]^d`` with ``n_points`` per axis (default 2001, 301, 81
@@ -66,7 +68,8 @@ def _inv_pd(M: Array) -> Array:
     return gaussian.symmetrize(jax.scipy.linalg.cho_solve((L, True), jnp.eye(M.shape[-1], dtype=M.dtype)))
 
 
-def noise_information(noise: ArrayLike | GaussianMixture, n_points: int | None = None, dtype=None) -> Array:
+def noise_information(noise: ArrayLike | GaussianMixture, n_points: int | None = None,
+                      dtype: Any = None) -> Array:
     """``I = E[grad log p(w) grad log p(w)^T]`` ``(d, d)`` of a noise density.
 
     Args:

@@ -70,7 +70,8 @@ def _stack(M: Array, n_steps: int, name: str, shape: tuple[int, int]) -> Array:
     return M
 
 
-def pcrb_linear(F: ArrayLike, H: ArrayLike, Q, R, P0: ArrayLike, n_steps: int) -> PCRBResult:
+def pcrb_linear(F: ArrayLike, H: ArrayLike, Q: ArrayLike | GaussianMixture, R: ArrayLike | GaussianMixture,
+                P0: ArrayLike, n_steps: int) -> PCRBResult:
     """PCRB of the linear Gaussian model ``x_{n+1} = F_n x_n + w_n``, ``z_{n+1} = H_{n+1} x_{n+1} + v``.
 
     With ``D11 = F^T Q^{-1} F``, ``D12 = -F^T Q^{-1}``, ``D22 = Q^{-1} + H^T R^{-1} H`` (seed 002
