@@ -183,7 +183,7 @@ def _angle_filter(name, model):
     return build(model)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _angle_errors(meas_name, filter_name, wrap=True):
     """Position RMSE ``(2,)`` on the track crossing ±pi and on the same track rotated by pi (one
     compiled kernel, vmapped over the two)."""

@@ -180,7 +180,7 @@ def _bimodal_data(T, rng):
     return np.asarray(xs), np.asarray(zs)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _gs_pair_batch(K=16):
     """One compiled kernel: GSF forward pass + GS smoother, vmapped over runs ``zs (N, T)``."""
     model = _bimodal_model()
@@ -194,7 +194,7 @@ def _gs_pair_batch(K=16):
     return jax.jit(jax.vmap(pair))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _bimodal_runs(T=20, n_runs=8):
     """``(xs, zs, filtered means, smoothed means, smoothed variances)``, each ``(n_runs, T)``."""
     rng = np.random.default_rng(7)

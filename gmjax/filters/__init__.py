@@ -22,6 +22,7 @@ from gmjax.filters import bank as bank  # noqa: E402
 from gmjax.filters import gsf as gsf  # noqa: E402
 from gmjax.filters import imm as imm  # noqa: E402
 from gmjax.filters import pf as pf  # noqa: E402
+from gmjax.filters import smoother as smoother  # noqa: E402
 from gmjax.filters._core import GaussianState as GaussianState
 from gmjax.filters._core import LocalFilter as LocalFilter
 from gmjax.filters._core import SqrtState as SqrtState
@@ -75,12 +76,11 @@ from gmjax.filters.sckf import local_sckf as local_sckf
 from gmjax.filters.sckf import tria as tria
 from gmjax.filters.sgkf import build_sgkf as build_sgkf
 from gmjax.filters.sgkf import local_sgkf as local_sgkf
-from gmjax.filters.ukf import build_ukf as build_ukf
-from gmjax.filters.ukf import local_ukf as local_ukf
-from gmjax.filters import smoother as smoother  # noqa: E402
 from gmjax.filters.smoother import gaussian_sum_smoother as gaussian_sum_smoother
 from gmjax.filters.smoother import rts_linear as rts_linear
 from gmjax.filters.smoother import rts_smoother as rts_smoother
+from gmjax.filters.ukf import build_ukf as build_ukf
+from gmjax.filters.ukf import local_ukf as local_ukf
 
 __all__ = [
     "Filter",

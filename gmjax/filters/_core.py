@@ -14,7 +14,7 @@ Two layers:
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -227,7 +227,7 @@ def check_model(model: StateSpaceModel) -> tuple[int, int]:
             f"dimension {d} of model.prior"
         )
     x = jax.ShapeDtypeStruct((d,), model.prior.means.dtype)
-    inputs = StepInputs(t=jax.ShapeDtypeStruct((), jnp.int32))
+    inputs = StepInputs(t=cast(Array, jax.ShapeDtypeStruct((), jnp.int32)))
     f, h, _, _ = model.step_fns()
     fo = _output_shape(model, "f", f, x, inputs)
     if fo is not None and getattr(fo, "shape", None) != (d,):

@@ -637,7 +637,7 @@ class _Sizes(NamedTuple):
     L: int  # max_level
 
 
-def _dons(h: Callable, gm: GaussianMixture, t: Array) -> Array:
+def _dons(h: Callable, gm: GaussianMixture, t: Any) -> Array:
     """``(K,)`` DON of every live component (0 in padded slots)."""
     eye = jnp.eye(gm.dim, dtype=gm.covs.dtype)
     covs = jnp.where(gm.mask[:, None, None], gm.covs, eye)
@@ -676,7 +676,7 @@ def _init_state(cfg: AGSFConfig, sz: _Sizes, prior: Any) -> AGSFState:
 
 
 def _split_stage(h: Callable, gate: Callable, cfg: AGSFConfig, sz: _Sizes, gm: GaussianMixture,
-                 t: Array, enabled: Array) -> tuple[GaussianMixture, Array, Array]:
+                 t: Any, enabled: Array) -> tuple[GaussianMixture, Array, Array]:
     """Steps 2–3: split the most nonlinear component while ``N < N_max`` (eqs 26–32).
 
     Returns:

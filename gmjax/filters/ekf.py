@@ -29,8 +29,10 @@ def local_ekf(f: StepFn, h: StepFn, f_jacobian: StepFn | None = None, h_jacobian
     Returns:
         A :class:`LocalFilter` over :class:`GaussianState`.
     """
-    f, h, f_jacobian, h_jacobian = (as_step_fn(g) for g in (f, h, f_jacobian, h_jacobian))
-    return linearized_filter(with_jacobian(f, f_jacobian), with_jacobian(h, h_jacobian), tuple(angle_dims))
+    f_step, h_step = as_step_fn(f), as_step_fn(h)
+    f_lin = with_jacobian(f_step, as_step_fn(f_jacobian))
+    h_lin = with_jacobian(h_step, as_step_fn(h_jacobian))
+    return linearized_filter(f_lin, h_lin, tuple(angle_dims))
 
 
 def build_ekf(model: StateSpaceModel) -> Filter:

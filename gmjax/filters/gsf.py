@@ -118,7 +118,7 @@ def _noise_log_weights(noise: GaussianMixture) -> Array:
     return log_w - logsumexp(log_w)
 
 
-def gs_predict(local: LocalFilter, gm: GaussianMixture, t: Array, noise: GaussianMixture) -> GaussianMixture:
+def gs_predict(local: LocalFilter, gm: GaussianMixture, t: Any, noise: GaussianMixture) -> GaussianMixture:
     """Gaussian-sum prediction: every component ``i`` × every noise component ``l`` (seed 000 eqs 4–8).
 
     Returns:
@@ -148,7 +148,7 @@ class GSUpdate(NamedTuple):
     missing: Array  # () the measurement held a NaN or an inf (a predict-only step)
 
 
-def gs_update(local: LocalFilter, gm: GaussianMixture, z: Array, t: Array, noise: GaussianMixture) -> GSUpdate:
+def gs_update(local: LocalFilter, gm: GaussianMixture, z: Array, t: Any, noise: GaussianMixture) -> GSUpdate:
     """Gaussian-sum update: every component × every measurement-noise component ``j``
     (seed 000 eqs 9–16), weights normalised in the log domain; child ``i*J + j``.
 

@@ -16,15 +16,29 @@ from gmjax.models.base import StateSpaceModel
 
 __all__ = ["LOCAL_FILTERS", "local_filter_for"]
 
+def _fh(m: StateSpaceModel) -> tuple[Callable, Callable]:
+    f, h, _, _ = m.step_fns()
+    return f, h
+
+
+def _kf(m: StateSpaceModel, **kw: Any) -> LocalFilter:
+    f, h = _fh(m)
+    return linearized_filter(affine_parts(f), affine_parts(h), m.angle_dims)
+
+
+def _ekf(m: StateSpaceModel, **kw: Any) -> LocalFilter:
+    f, h, fj, hj = m.step_fns()
+    return ekf.local_ekf(f, h, fj, hj, m.angle_dims)
+
+
 LOCAL_FILTERS: dict[str, Callable[..., LocalFilter]] = {
-    "kf": lambda m, **kw: linearized_filter(affine_parts(m.step_fns()[0]), affine_parts(m.step_fns()[1]),
-                                            m.angle_dims),
-    "ekf": lambda m, **kw: ekf.local_ekf(*m.step_fns(), m.angle_dims),
-    "ukf": lambda m, **kw: ukf.local_ukf(*m.step_fns()[:2], **kw, angle_dims=m.angle_dims),
-    "ckf": lambda m, **kw: ckf.local_ckf(*m.step_fns()[:2], m.angle_dims),
-    "ghkf": lambda m, **kw: ghkf.local_ghkf(*m.step_fns()[:2], **kw, angle_dims=m.angle_dims),
-    "sgkf": lambda m, **kw: sgkf.local_sgkf(*m.step_fns()[:2], **kw, angle_dims=m.angle_dims),
-    "sckf": lambda m, **kw: sckf.local_sckf(*m.step_fns()[:2], m.angle_dims),
+    "kf": _kf,
+    "ekf": _ekf,
+    "ukf": lambda m, **kw: ukf.local_ukf(*_fh(m), **{**kw, "angle_dims": m.angle_dims}),
+    "ckf": lambda m, **kw: ckf.local_ckf(*_fh(m), m.angle_dims),
+    "ghkf": lambda m, **kw: ghkf.local_ghkf(*_fh(m), **{**kw, "angle_dims": m.angle_dims}),
+    "sgkf": lambda m, **kw: sgkf.local_sgkf(*_fh(m), **{**kw, "angle_dims": m.angle_dims}),
+    "sckf": lambda m, **kw: sckf.local_sckf(*_fh(m), m.angle_dims),
 }
 
 

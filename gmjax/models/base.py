@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import inspect
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, overload
 
 import jax.numpy as jnp
 
@@ -57,6 +57,18 @@ def _is_step_inputs(s: Any) -> bool:
     from gmjax.filters.base import StepInputs
 
     return isinstance(s, StepInputs)
+
+
+@overload
+def as_step_fn(fn: Callable, call: str = ..., name: str = ...) -> Callable: ...
+
+
+@overload
+def as_step_fn(fn: None, call: str = ..., name: str = ...) -> None: ...
+
+
+@overload
+def as_step_fn(fn: Callable | None, call: str = ..., name: str = ...) -> Callable | None: ...
 
 
 def as_step_fn(fn: Callable | None, call: str = "auto", name: str = "f") -> Callable | None:

@@ -548,7 +548,8 @@ def state_space_model(
             return noise
         return scale(noise, inputs.dt)
 
-    f_jac = None if motion.F is None else (lambda x, inputs: motion.F(step_dt(inputs, x.dtype)))
+    F_of_dt = motion.F
+    f_jac = None if F_of_dt is None else (lambda x, inputs: F_of_dt(step_dt(inputs, x.dtype)))
     h_jac = None if measurement.H is None else (lambda x, inputs: jnp.asarray(measurement.H, x.dtype))
     return StateSpaceModel(
         f=f, h=h, process_noise=process_noise, measurement_noise=measurement_noise, prior=prior,

@@ -23,9 +23,9 @@ from gmjax.pcrb._mc import pcrb_from_expectations as pcrb_from_expectations
 from gmjax.pcrb._mc import pcrb_mc as pcrb_mc
 from gmjax.pcrb._model import PCRBModel as PCRBModel
 from gmjax.pcrb._model import as_pcrb_model as as_pcrb_model
-from gmjax.pcrb._noise import noise_information as noise_information
 from gmjax.pcrb._model import from_state_space_model as from_state_space_model
 from gmjax.pcrb._model import prior_information as prior_information
+from gmjax.pcrb._noise import noise_information as noise_information
 from gmjax.pcrb._recursion import PCRBResult as PCRBResult
 from gmjax.pcrb._recursion import bounds_from_information as bounds_from_information
 from gmjax.pcrb._recursion import pcrb_linear as pcrb_linear

@@ -211,13 +211,13 @@ def pcrb_mc(
         stderr = np.sqrt(var / n_chunks)
     else:
         stderr = np.full(np.shape(bound), np.nan)
-    Qi = np.asarray(Qi, np.float64)
+    Qi_np = np.asarray(Qi, np.float64)
     info = MCInfo(
         n_samples=int(n_samples),
         n_chunks=n_chunks,
         bound_stderr=jnp.asarray(stderr),
         D11=jnp.asarray(D11),
-        D12=jnp.asarray(-np.swapaxes(EF, -1, -2) @ Qi),
-        D22=jnp.asarray(Qi + EH),
+        D12=jnp.asarray(-np.swapaxes(EF, -1, -2) @ Qi_np),
+        D22=jnp.asarray(Qi_np + EH),
     )
     return PCRBResult(Js, bound, info)

@@ -43,8 +43,8 @@ def whitened_rule(d: int, n_points: int | None = None, dtype: Any = None) -> tup
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
     n = _TRAPEZOID_POINTS.get(d, 0) if n_points is None else int(n_points)
     if n <= 0:
-        z = jax.random.normal(jax.random.PRNGKey(0), (_MC_SAMPLES, d), dtype)
-        return z, jnp.full((_MC_SAMPLES,), 1.0 / _MC_SAMPLES, dtype)
+        draws = jax.random.normal(jax.random.PRNGKey(0), (_MC_SAMPLES, d), dtype)
+        return draws, jnp.full((_MC_SAMPLES,), 1.0 / _MC_SAMPLES, dtype)
     g = np.linspace(-_HALF_WIDTH, _HALF_WIDTH, n)
     grids = np.meshgrid(*([g] * d), indexing="ij")
     z = np.stack([a.ravel() for a in grids], axis=1)
