@@ -30,11 +30,9 @@ import numpy as np  # noqa: E402
 from _common import RESULTS_DIR, markdown_table, write_results  # noqa: E402
 from reference import gsf_np, imm_gsf_np  # noqa: E402
 
-from gmjax import metrics  # noqa: E402
-from gmjax.filters.base import run  # noqa: E402
 from gmjax.filters.imm import build_imm_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
-from gmjax.montecarlo import RunScores, summarize  # noqa: E402
+from gmjax.montecarlo import filter_run, score_filtered, summarize  # noqa: E402
 from gmjax.reduction import GMRC, GMRCM, PruneTop, Runnalls  # noqa: E402
 from gmjax.scenarios import manoeuvring_target  # noqa: E402
 
@@ -55,28 +53,15 @@ def make_reducer(name: str, K: int, gmrcm_newton: int):
 
 
 def _one_run(filt, scenario, key):
-    """Simulate, filter and score one run (same key use as :func:`gmjax.montecarlo.score_run`),
-    plus the per-step searched ``λ`` of each model (0 where the reducer has none)."""
-    k_sim, k_filt = jax.random.split(key)
-    xs, zs, ts = simulate(scenario, k_sim)
-    truths = xs[1:]
-    _, infos = run(filt, zs, ts, key=k_filt)
-    est, cov = infos.mean, infos.cov
-    T = truths.shape[0]
-    scores = RunScores(
-        sq_error=metrics.squared_error(est, truths),
-        position_sq_error=(est[:, 0] - truths[:, 0]) ** 2,
-        nees=metrics.nees(est, cov, truths),
-        n_components=infos.n_components,
-        ise=infos.extra["ise"],
-        cost=infos.reduction.cost,
-        flags=infos.flags.any(),
-        estimates=None,
-        truths=None,
-    )
-    lam = infos.extra["mode_reduction"].aux.get("lambda", jnp.zeros((T, 2), est.dtype))
+    """One run scored by :func:`gmjax.montecarlo.score_filtered` (the Monte Carlo runner's scorer), plus
+    the per-step searched ``λ`` of each model (0 where the reducer has none), the model probabilities and
+    the position standard deviation."""
+    r = filter_run(filt, scenario, key)
+    infos = r.infos
+    T = r.truths.shape[0]
+    lam = infos.extra["mode_reduction"].aux.get("lambda", jnp.zeros((T, 2), r.estimates.dtype))
     sigma_x = jnp.sqrt(infos.cov[:, 0, 0])
-    return scores, lam, infos.extra["model_probs"], sigma_x
+    return score_filtered(r), lam, infos.extra["model_probs"], sigma_x
 
 
 def run_reducer(filt, scenario, keys):

@@ -91,6 +91,7 @@ __all__ = [
     "run_key",
     "filter_run",
     "score_run",
+    "score_filtered",
     "study_scores",
     "study_loss",
     "armse_loss",
@@ -174,9 +175,10 @@ def filter_run(filter: Filter, scenario: Scenario, key: PRNGKey, params: Any = N
     ``params`` overrides ``filter.params`` (differentiate or vmap a study over them).
     """
     k_sim, k_filt = jax.random.split(key)
-    xs, zs, ts = simulate(scenario, k_sim)
+    xs, zs, steps = simulate(scenario, k_sim)  # steps: the times, or the scenario's StepInputs
     truths = xs[1:]
-    _, infos = run(filter, zs, StepInputs(t=ts), key=k_filt, params=params)
+    inputs = steps if isinstance(steps, StepInputs) else StepInputs(t=steps)
+    _, infos = run(filter, zs, inputs, key=k_filt, params=params)
     pos = list(scenario.position_dims) if scenario.position_dims else list(range(truths.shape[1]))
     return FilteredRun(truths, infos.mean, infos.cov, infos, pos, _any_flag(infos.flags))
 
@@ -184,7 +186,11 @@ def filter_run(filter: Filter, scenario: Scenario, key: PRNGKey, params: Any = N
 def score_run(filter: Filter, scenario: Scenario, key: PRNGKey, *, params: Any = None,
               keep_trajectories: bool = False) -> RunScores:
     """Simulate one run of ``scenario``, filter it and score every step (traceable, differentiable)."""
-    r = filter_run(filter, scenario, key, params)
+    return score_filtered(filter_run(filter, scenario, key, params), keep_trajectories=keep_trajectories)
+
+
+def score_filtered(r: FilteredRun, *, keep_trajectories: bool = False) -> RunScores:
+    """Score every step of a :class:`FilteredRun` (for scorers that also read ``r.infos``)."""
     truths, est, pos = r.truths, r.estimates, r.position_dims
     T, dtype = truths.shape[0], truths.dtype
     reduction = r.infos.reduction

@@ -358,3 +358,25 @@ def test_two_processes_with_jax_distributed_equal_one_process(tmp_path):
     assert r0.config["devices"] == {"count": 2, "platform": "cpu", "processes": 2}
     np.testing.assert_allclose(r0.scores.sq_error, ref.scores.sq_error, rtol=1e-12, atol=1e-14)
     assert_close(r0, ref, rtol=1e-12)
+
+
+def test_study_of_an_irregular_time_scenario_uses_its_inputs():
+    """A scenario with per-step inputs (irregular dt) runs through monte_carlo, with the filter fed the
+    same StepInputs as filters.run on the simulated run."""
+    from gmjax import mixture
+    from gmjax.filters import build_kf
+    from gmjax.filters.base import StepInputs, run
+    from gmjax.models import inputs_from_times, scenario_from_model, simulate
+    from gmjax.models import library as lib
+
+    model = lib.state_space_model(lib.constant_velocity(1, 0.5), lib.cartesian_position((0,), 2, 0.1),
+                                  mixture.from_gaussian(jnp.zeros(2), jnp.eye(2)))
+    sc = scenario_from_model(model, 6, inputs=inputs_from_times(np.array([0.1, 0.3, 1.3, 1.4, 2.9, 3.0])))
+    filt = build_kf(model)
+    key = jax.random.key(3)
+    res = montecarlo.monte_carlo(filt, sc, 4, key, keep_runs=4, progress=False)
+    k_sim, k_filt = jax.random.split(montecarlo.run_key(key, 2))
+    xs, zs, steps = simulate(sc, k_sim)
+    assert isinstance(steps, StepInputs)
+    _, infos = run(filt, zs, steps, key=k_filt)
+    np.testing.assert_allclose(res.scores.sq_error[2], ((infos.mean - xs[1:]) ** 2).sum(-1), rtol=1e-12)

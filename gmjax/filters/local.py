@@ -10,11 +10,11 @@ from __future__ import annotations
 from typing import Any, Callable
 
 from gmjax.filters import ckf, ekf, ghkf, sckf, sgkf, ukf
-from gmjax.filters._core import LocalFilter
+from gmjax.filters._core import LocalFilter, gaussian_moments
 from gmjax.filters._linearized import affine_parts, linearized_filter
 from gmjax.models.base import StateSpaceModel
 
-__all__ = ["LOCAL_FILTERS", "local_filter_for"]
+__all__ = ["LOCAL_FILTERS", "local_filter_for", "LocalFilter", "gaussian_moments"]
 
 def _fh(m: StateSpaceModel) -> tuple[Callable, Callable]:
     f, h, _, _ = m.step_fns()

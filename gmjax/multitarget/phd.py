@@ -62,9 +62,8 @@ import numpy as np
 
 from gmjax import mixture as gmm
 from gmjax._types import Array, PRNGKey
-from gmjax.filters._core import LocalFilter, gaussian_moments
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs, step_inputs
-from gmjax.filters.local import LOCAL_FILTERS, local_filter_for
+from gmjax.filters.local import LOCAL_FILTERS, LocalFilter, gaussian_moments, local_filter_for
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import StateSpaceModel
 from gmjax.reduction import VoMa

@@ -25,7 +25,7 @@ import numpy as np
 
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike, PRNGKey
-from gmjax.filters._core import gaussian_moments
+from gmjax.filters.local import gaussian_moments
 from gmjax.mixture import GaussianMixture, from_gaussian
 from gmjax.models.base import StateSpaceModel
 
