@@ -65,7 +65,7 @@ def approximations(case: StaticCase) -> dict[str, Callable[[GaussianMixture], Ga
         "moment-matched Gaussian": moment_matched,
         f"keep {case.target} heaviest (renormalised)": lambda g: mx.top_k(g, case.target, renormalize=True),
         f"Runnalls to {case.target}": lambda g: reduction.runnalls(g, case.target)[0],
-        "PCM (seed 000)": lambda g: reduction.pcm(g)[0],
+        "PCM (Xu et al.)": lambda g: reduction.pcm(g)[0],
     }
 
 
@@ -87,7 +87,7 @@ def run(*, draws: int = 1000, seed: int = 0, out: Path = Path("gmjax_out"), plot
     key = jax.random.key(seed)
     dtype = str(jnp.zeros(()).dtype)
     results = {}
-    print(f"gmjax {gmjax.__version__} (JAX {jax.__version__}): seed 000 static random cases, {draws} draws "
+    print(f"gmjax {gmjax.__version__} (JAX {jax.__version__}): static random cases of Xu et al. (PCM), {draws} draws "
           f"each, seed {seed}, {dtype}, on {jax.devices()[0].platform.upper()}")
     first_draws = {}
     for case_key, case in zip(jax.random.split(key, len(CASES)), CASES):

@@ -1,7 +1,7 @@
 """The ``gmjax`` command.
 
-``gmjax`` with no arguments runs the default study (seed 000 Table 7 over 100 runs);
-``gmjax study NAME``, ``gmjax reproduce [TABLE]``, ``gmjax static`` (seed 000 static reduction cases),
+``gmjax`` with no arguments runs the default study (Xu et al. (PCM) Table 7 over 100 runs);
+``gmjax study NAME``, ``gmjax reproduce [TABLE]``, ``gmjax static`` (the static reduction cases of Xu et al. (PCM)),
 ``gmjax bench NAME`` (``benchmarks/bench_NAME.py`` from a source checkout), ``gmjax --version``.
 
 Studies run in float64 (the command turns on ``jax_enable_x64``; ``--float32`` keeps JAX's default),
@@ -54,7 +54,7 @@ def _build_parser() -> argparse.ArgumentParser:
         prog="gmjax",
         description=(
             "Gaussian-mixture state estimation in JAX. With no command, runs the default study: "
-            "seed 000 Table 7 (NL-GSF, PCM-GSF, R-GSF with EKFs and a 300-particle PF, 100 runs)."
+            "Xu et al. (PCM) Table 7 (NL-GSF, PCM-GSF, R-GSF with EKFs and a 300-particle PF, 100 runs)."
         ),
     )
     parser.add_argument("--version", action="version", version=f"gmjax {gmjax.__version__}")
@@ -68,7 +68,7 @@ def _build_parser() -> argparse.ArgumentParser:
     repro.add_argument("table", nargs="?", help="e.g. seed000-table7")
     _add_study_args(repro)
 
-    static = sub.add_parser("static", help="seed 000 static random reduction cases (Tables 5-6 style)")
+    static = sub.add_parser("static", help="static random reduction cases of Xu et al. (PCM) (Tables 5-6 style)")
     static.add_argument("--draws", type=int, default=1000, help="random mixtures per case (default 1000)")
     static.add_argument("--seed", type=int, default=0, help="PRNG seed, 0 <= seed < 2**63 (default 0)")
     static.add_argument("--out", type=Path, default=Path("gmjax_out"), help="folder for the PNG and JSON")
