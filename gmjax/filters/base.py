@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from gmjax._types import Array, PRNGKey
 from gmjax.mixture import GaussianMixture
 
-__all__ = ["StepInputs", "StepFlags", "StepInfo", "Filter", "step_inputs", "no_flags", "run"]
+__all__ = ["StepInputs", "StepFlags", "StepInfo", "Filter", "step_inputs", "no_flags", "run", "scan_steps"]
 
 
 class StepInputs(NamedTuple):
@@ -226,6 +226,25 @@ def run(
     """
     params = filter.params if params is None else params
     zs = check_measurements(zs, measurement_dim(params))
+    return scan_steps(filter, params, zs, inputs, key=key, prior=prior, init_state=init_state)
+
+
+def scan_steps(
+    filter: Filter,
+    params: Any,
+    zs: Array,
+    inputs: Any = None,
+    *,
+    key: PRNGKey | None = None,
+    prior: GaussianMixture | None = None,
+    init_state: Any = None,
+) -> tuple[Any, StepInfo]:
+    """The ``lax.scan`` behind :func:`run`, without checking ``zs`` (for filters whose per-step
+    measurement is not a ``(m,)`` vector, e.g. the padded sets of :mod:`gmjax.multitarget`).
+
+    The key splits as in :func:`run`: one key for ``init``, then one per step, split into predict
+    and update keys.
+    """
     n_steps = zs.shape[0]
     inputs = step_inputs(n_steps, inputs)
     if key is None:

@@ -62,7 +62,7 @@ import numpy as np
 
 from gmjax import mixture as gmm
 from gmjax._types import Array, PRNGKey
-from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs, step_inputs
+from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs, scan_steps
 from gmjax.filters.local import LOCAL_FILTERS, LocalFilter, gaussian_moments, local_filter_for
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import StateSpaceModel
@@ -546,22 +546,5 @@ def run(
     zs = jnp.asarray(zs)
     if zs.ndim != 3:
         raise ValueError(f"zs: expected padded measurement sets of shape (T, M, m), got {zs.shape}")
-    n_steps = zs.shape[0]
-    inputs = step_inputs(n_steps, inputs)
     params = filter.params if params is None else params
-    if key is None:
-        k_init, step_keys = None, None
-    else:
-        k_init, k_steps = jax.random.split(key)
-        step_keys = jax.random.split(k_steps, n_steps)
-    state0 = filter.init(params, prior, key=k_init) if init_state is None else init_state
-
-    def step(state, xs):
-        z, inp, k = xs
-        k_pred, k_upd = (None, None) if k is None else jax.random.split(k)
-        state = filter.predict(params, state, inp, key=k_pred)
-        state, info = filter.update(params, state, z, inp, key=k_upd)
-        return state, (state, info)
-
-    _, (states, infos) = jax.lax.scan(step, state0, (zs, inputs, step_keys))
-    return states, infos
+    return scan_steps(filter, params, zs, inputs, key=key, prior=prior, init_state=init_state)
