@@ -61,13 +61,17 @@ def main(argv=None):
     # NumPy references in the same process: the explicit double loop (timed on a few pairs and scaled,
     # it is O(K^2) Python iterations per pair) and a broadcasting version over all pairs.
     loop_idx = range(n_np_loop)
-    t_loop = time_python(lambda: [metrics_np.ise(wa[i], ma[i], Pa[i], wb[i], mb[i], Pb[i]) for i in loop_idx], repeats=1)
+    t_loop = time_python(
+        lambda: [metrics_np.ise(wa[i], ma[i], Pa[i], wb[i], mb[i], Pb[i]) for i in loop_idx], repeats=1
+    )
     per_pair_loop = t_loop["run_min_s"] / n_np_loop
     t_vec = time_python(
         lambda: [metrics_np.ise_vectorized(wa[i], ma[i], Pa[i], wb[i], mb[i], Pb[i]) for i in range(n_pairs)],
         repeats=1 if not args.quick else 2,
     )
-    ref_vec = np.array([metrics_np.ise_vectorized(wa[i], ma[i], Pa[i], wb[i], mb[i], Pb[i]) for i in range(min(n_pairs, 50))])
+    ref_vec = np.array(
+        [metrics_np.ise_vectorized(wa[i], ma[i], Pa[i], wb[i], mb[i], Pb[i]) for i in range(min(n_pairs, 50))]
+    )
     ref_loop = np.array([metrics_np.ise(wa[i], ma[i], Pa[i], wb[i], mb[i], Pb[i]) for i in loop_idx])
     max_rel_err = float(
         max(
@@ -80,8 +84,22 @@ def main(argv=None):
     vec_per_pair = t_vec["run_min_s"] / n_pairs
     rows = [
         ["gmjax jit(vmap(ise))", n_pairs, t_jax["compile_s"], t_jax["run_min_s"], jax_per_pair * 1e6, 1.0],
-        ["NumPy broadcasting loop over pairs", n_pairs, 0.0, t_vec["run_min_s"], vec_per_pair * 1e6, vec_per_pair / jax_per_pair],
-        [f"NumPy double loop (timed on {n_np_loop} pairs, scaled)", n_pairs, 0.0, per_pair_loop * n_pairs, per_pair_loop * 1e6, per_pair_loop / jax_per_pair],
+        [
+            "NumPy broadcasting loop over pairs",
+            n_pairs,
+            0.0,
+            t_vec["run_min_s"],
+            vec_per_pair * 1e6,
+            vec_per_pair / jax_per_pair,
+        ],
+        [
+            f"NumPy double loop (timed on {n_np_loop} pairs, scaled)",
+            n_pairs,
+            0.0,
+            per_pair_loop * n_pairs,
+            per_pair_loop * 1e6,
+            per_pair_loop / jax_per_pair,
+        ],
     ]
     header = ["implementation", "pairs", "compile s", "run s (min)", "µs / pair", "time ratio vs gmjax"]
     md = (

@@ -49,24 +49,45 @@ def numpy_pcm_gsf_run(scenario, key) -> float:
     h_jac = lambda x, t: np.atleast_2d(x / 10 if t <= 80 else 3.0)  # noqa: E731
 
     def reducer(mix):
-        _, (w, m, P, _, _) = pcm_numpy.pcm_grid(*mix, rho=0.9544, max_components=N_U, lam_lo=1.0,
-                                                  lam_hi=3.0, grid=11)
+        _, (w, m, P, _, _) = pcm_numpy.pcm_grid(
+            *mix, rho=0.9544, max_components=N_U, lam_lo=1.0, lam_hi=3.0, grid=11
+        )
         return w / w.sum(), m, P
 
-    est, _, _ = gsf_np.run_gsf(live(m.prior), zs, f, h, live(m.process_noise), live(m.measurement_noise),
-                               reducer=reducer, f_jac=f_jac, h_jac=h_jac)
+    est, _, _ = gsf_np.run_gsf(
+        live(m.prior),
+        zs,
+        f,
+        h,
+        live(m.process_noise),
+        live(m.measurement_noise),
+        reducer=reducer,
+        f_jac=f_jac,
+        h_jac=h_jac,
+    )
     return float(np.sqrt(np.mean((est - xs[1:]) ** 2)))
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="small smoke run (1 and 8 runs, 20 steps)")
     parser.add_argument("--runs", type=int, nargs="+", default=None)
     parser.add_argument("--numpy-runs", type=int, default=None, help="runs timed for the NumPy reference")
-    parser.add_argument("--newton-runs", type=int, nargs="+", default=None,
-                        help="run counts for the grid + Newton configuration (default: --runs)")
-    parser.add_argument("--budget-s", type=float, default=900.0,
-                        help="skip a run count whose predicted time exceeds this (reported as skipped)")
+    parser.add_argument(
+        "--newton-runs",
+        type=int,
+        nargs="+",
+        default=None,
+        help="run counts for the grid + Newton configuration (default: --runs)",
+    )
+    parser.add_argument(
+        "--budget-s",
+        type=float,
+        default=900.0,
+        help="skip a run count whose predicted time exceeds this (reported as skipped)",
+    )
     args = parser.parse_args(argv)
     runs = args.runs or ([1, 8] if args.quick else [1, 100, 1000, 10000])
     n_np = args.numpy_runs or (1 if args.quick else 3)
@@ -85,20 +106,38 @@ def main(argv=None):
     t0 = time.perf_counter()
     np_rmse = [numpy_pcm_gsf_run(scenario, k) for k in sim_keys]
     np_per_run = (time.perf_counter() - t0) / n_np
-    print(f"NumPy reference: {np_per_run:.3f} s per run (timed on {n_np} runs), mean RMSE {np.mean(np_rmse):.3f}")
-    same = monte_carlo(build_gsf(scenario.model, "ekf", configs["gmjax PCM-GSF (grid)"], capacity=N_U,
-                                 track_ise=False), scenario, n_np, key, keep_runs=n_np, progress=False)
+    print(
+        f"NumPy reference: {np_per_run:.3f} s per run (timed on {n_np} runs), mean RMSE {np.mean(np_rmse):.3f}"
+    )
+    same = monte_carlo(
+        build_gsf(scenario.model, "ekf", configs["gmjax PCM-GSF (grid)"], capacity=N_U, track_ise=False),
+        scenario,
+        n_np,
+        key,
+        keep_runs=n_np,
+        progress=False,
+    )
     gm_rmse = np.sqrt(same.scores.sq_error.mean(1))
-    print(f"same {n_np} runs: per-run RMSE NumPy {np.round(np_rmse, 4)} vs gmjax (grid) {np.round(gm_rmse, 4)}")
+    print(
+        f"same {n_np} runs: per-run RMSE NumPy {np.round(np_rmse, 4)} vs gmjax (grid) {np.round(gm_rmse, 4)}"
+    )
 
-    rows, data = [], {"numpy_per_run_s": np_per_run, "numpy_runs_timed": n_np, "n_steps": scenario.n_steps,
-                      "same_runs_rmse_numpy": np_rmse, "same_runs_rmse_gmjax_grid": gm_rmse.tolist(),
-                      "configs": {}}
+    rows, data = (
+        [],
+        {
+            "numpy_per_run_s": np_per_run,
+            "numpy_runs_timed": n_np,
+            "n_steps": scenario.n_steps,
+            "same_runs_rmse_numpy": np_rmse,
+            "same_runs_rmse_gmjax_grid": gm_rmse.tolist(),
+            "configs": {},
+        },
+    )
     for name, reducer in configs.items():
         filt = build_gsf(scenario.model, "ekf", reducer, capacity=N_U, track_ise=False)
         data["configs"][name] = {}
         rate = None
-        for n in (runs if "Newton" not in name or args.newton_runs is None else args.newton_runs):
+        for n in runs if "Newton" not in name or args.newton_runs is None else args.newton_runs:
             if rate is not None and n / rate > args.budget_s:
                 print(f"{name}: skipping N={n} (predicted {n / rate:.0f} s > budget {args.budget_s:.0f} s)")
                 rows.append([name, n, "skipped", "", "", "", ""])
@@ -108,21 +147,39 @@ def main(argv=None):
             rate = n / r.run_s
             speedup = np_per_run * rate
             rows.append([name, n, r.compile_s, r.run_s, rate, speedup, r.armse])
-            data["configs"][name][str(n)] = {"compile_s": r.compile_s, "run_s": r.run_s, "runs_per_s": rate,
-                                             "speedup_vs_numpy": speedup, "armse": r.armse}
-            print(f"{name}: N={n}: compile {r.compile_s:.1f} s, run {r.run_s:.2f} s, {rate:.1f} runs/s, "
-                  f"{speedup:.1f}x NumPy, ARMSE {r.armse:.3f}")
+            data["configs"][name][str(n)] = {
+                "compile_s": r.compile_s,
+                "run_s": r.run_s,
+                "runs_per_s": rate,
+                "speedup_vs_numpy": speedup,
+                "armse": r.armse,
+            }
+            print(
+                f"{name}: N={n}: compile {r.compile_s:.1f} s, run {r.run_s:.2f} s, {rate:.1f} runs/s, "
+                f"{speedup:.1f}x NumPy, ARMSE {r.armse:.3f}"
+            )
     header = ["implementation", "runs", "compile s", "run s", "runs / s", "throughput vs NumPy", "ARMSE"]
-    rows.append(["NumPy per-run loop (reference)", n_np, 0.0, np_per_run * n_np, 1.0 / np_per_run, 1.0,
-                 float(np.mean(np_rmse))])
-    md = (f"# Monte Carlo throughput: PCM-GSF, seed 000 scalar jump system ({scenario.n_steps} steps)\n\n"
-          + markdown_table(header, rows)
-          + "\n\nOne compiled kernel per configuration runs all runs (vmap over runs, lax.scan over time);"
-          " compile time is reported apart. The NumPy reference filters one run at a time with the same"
-          " pruning, clustering, CI merging and λ grid, timed in the same process. Timings come from the"
-          " project's 2-core CPU machine, which other jobs may share; compare ratios within one run.\n"
-          f"\nSame {n_np} simulated runs through both: per-run RMSE NumPy {np.round(np_rmse, 4).tolist()}, "
-          f"gmjax (grid) {np.round(gm_rmse, 4).tolist()}.\n")
+    rows.append(
+        [
+            "NumPy per-run loop (reference)",
+            n_np,
+            0.0,
+            np_per_run * n_np,
+            1.0 / np_per_run,
+            1.0,
+            float(np.mean(np_rmse)),
+        ]
+    )
+    md = (
+        f"# Monte Carlo throughput: PCM-GSF, seed 000 scalar jump system ({scenario.n_steps} steps)\n\n"
+        + markdown_table(header, rows)
+        + "\n\nOne compiled kernel per configuration runs all runs (vmap over runs, lax.scan over time);"
+        " compile time is reported apart. The NumPy reference filters one run at a time with the same"
+        " pruning, clustering, CI merging and λ grid, timed in the same process. Timings come from the"
+        " project's 2-core CPU machine, which other jobs may share; compare ratios within one run.\n"
+        f"\nSame {n_np} simulated runs through both: per-run RMSE NumPy {np.round(np_rmse, 4).tolist()}, "
+        f"gmjax (grid) {np.round(gm_rmse, 4).tolist()}.\n"
+    )
     path = write_results("montecarlo", data, md, quick=args.quick)
     print(md)
     print(f"wrote {path}")

@@ -40,10 +40,19 @@ def one(n: int, chunk_size: int | None) -> dict:
     t0 = time.perf_counter()
     r = monte_carlo(filt, sc, n, jax.random.key(0), chunk_size=chunk_size, progress=False)
     wall = time.perf_counter() - t0
-    return {"n_runs": n, "chunk_size": r.config["chunk_size"], "compile_s": r.compile_s, "run_s": r.run_s,
-            "wall_s": wall, "runs_per_s": n / r.run_s, "peak_rss_mb": resource.getrusage(
-                resource.RUSAGE_SELF).ru_maxrss / 1024, "armse": r.armse, "armse_stderr": r.armse_stderr,
-            "median_nees": r.median_nees, "n_runs_flagged": r.n_runs_flagged}
+    return {
+        "n_runs": n,
+        "chunk_size": r.config["chunk_size"],
+        "compile_s": r.compile_s,
+        "run_s": r.run_s,
+        "wall_s": wall,
+        "runs_per_s": n / r.run_s,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "armse": r.armse,
+        "armse_stderr": r.armse_stderr,
+        "median_nees": r.median_nees,
+        "n_runs_flagged": r.n_runs_flagged,
+    }
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -60,8 +69,15 @@ def main(argv: list[str] | None = None) -> dict:
     from _common import markdown_table, write_results
 
     sizes = args.sizes or ([1000, 10000] if args.quick else [10_000, 100_000, 1_000_000])
-    rows, data = [], {"scenario": "seed000 jump system, 120 steps", "filter": f"NL-GSF (EKF, PruneTop {N_U})",
-                      "note": args.note, "sizes": []}
+    rows, data = (
+        [],
+        {
+            "scenario": "seed000 jump system, 120 steps",
+            "filter": f"NL-GSF (EKF, PruneTop {N_U})",
+            "note": args.note,
+            "sizes": [],
+        },
+    )
     with open("/proc/loadavg") as f:
         data["loadavg_before"] = f.read().split()[:3]
     for n in sizes:
@@ -73,22 +89,37 @@ def main(argv: list[str] | None = None) -> dict:
             raise SystemExit(f"N={n} failed:\n{res.stderr[-3000:]}")
         d = json.loads(res.stdout.strip().splitlines()[-1])
         data["sizes"].append(d)
-        print(f"N={n}: chunk {d['chunk_size']}, compile {d['compile_s']:.1f} s, run {d['run_s']:.1f} s, "
-              f"{d['runs_per_s']:.0f} runs/s, peak RSS {d['peak_rss_mb']:.0f} MB, "
-              f"ARMSE {d['armse']:.4f} ± {d['armse_stderr']:.4f}", flush=True)
+        print(
+            f"N={n}: chunk {d['chunk_size']}, compile {d['compile_s']:.1f} s, run {d['run_s']:.1f} s, "
+            f"{d['runs_per_s']:.0f} runs/s, peak RSS {d['peak_rss_mb']:.0f} MB, "
+            f"ARMSE {d['armse']:.4f} ± {d['armse_stderr']:.4f}",
+            flush=True,
+        )
         rss_ratio = d["peak_rss_mb"] / data["sizes"][0]["peak_rss_mb"]
-        rows.append([n, d["chunk_size"], d["compile_s"], d["run_s"], d["runs_per_s"], d["peak_rss_mb"],
-                     rss_ratio, f"{d['armse']:.4f} ± {d['armse_stderr']:.4f}"])
+        rows.append(
+            [
+                n,
+                d["chunk_size"],
+                d["compile_s"],
+                d["run_s"],
+                d["runs_per_s"],
+                d["peak_rss_mb"],
+                rss_ratio,
+                f"{d['armse']:.4f} ± {d['armse_stderr']:.4f}",
+            ]
+        )
     with open("/proc/loadavg") as f:
         data["loadavg_after"] = f.read().split()[:3]
     header = ["runs", "chunk", "compile s", "run s", "runs / s", "peak RSS MB", "RSS / first", "ARMSE ± s.e."]
-    md = ("# Bounded-memory Monte Carlo: NL-GSF on seed 000's jump system (120 steps)\n\n"
-          + markdown_table(header, rows)
-          + "\n\nEach size in a fresh process (peak RSS is that process's `ru_maxrss`, JAX and the compiled"
-          " kernel included). Scores stream into per-step sums, so memory does not depend on the number of"
-          " runs. Load average before / after: "
-          f"{' '.join(data['loadavg_before'])} / {' '.join(data['loadavg_after'])}."
-          + (f"\n\nNote: {args.note}\n" if args.note else "\n"))
+    md = (
+        "# Bounded-memory Monte Carlo: NL-GSF on seed 000's jump system (120 steps)\n\n"
+        + markdown_table(header, rows)
+        + "\n\nEach size in a fresh process (peak RSS is that process's `ru_maxrss`, JAX and the compiled"
+        " kernel included). Scores stream into per-step sums, so memory does not depend on the number of"
+        " runs. Load average before / after: "
+        f"{' '.join(data['loadavg_before'])} / {' '.join(data['loadavg_after'])}."
+        + (f"\n\nNote: {args.note}\n" if args.note else "\n")
+    )
     path = write_results("montecarlo_scale", data, md, quick=args.quick)
     print(md)
     print(f"wrote {path}")

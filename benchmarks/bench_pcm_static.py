@@ -36,8 +36,11 @@ from gmjax.reduction import eise, gmrcm, onehot_membership, pcm, prune_top, runn
 CASES = {
     "unimodal": ([0.3, 0.1, 0.4, 0.2], [1, 1.5, 2, 3], [1, 1.2, 0.5, 0.8]),
     "bimodal": ([0.3, 0.1, 0.4, 0.2], [0.5, 2, 3.5, 4], [1, 1.2, 0.5, 0.8]),
-    "multimodal": ([0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06], [0.5, 2, 3.5, 4, 5, -1, 0, 1],
-                   [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3]),
+    "multimodal": (
+        [0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06],
+        [0.5, 2, 3.5, 4, 5, -1, 0, 1],
+        [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3],
+    ),
 }
 # seed 000 Tables 2-4: (final number, EISE, CPU time s) at lambda = 1, 2, 3, 4
 PAPER_000 = {
@@ -54,10 +57,20 @@ PAPER_003 = {
 PAPER_003_BEST = {"unimodal": (1.8, 3, 0.028), "bimodal": (1.7, 2, 0.03), "multimodal": (1.6, 6, 0.052)}
 # seed 000 Tables 5-6: NL-GMR, PCM-GMR, R-GMR
 PAPER_56 = {
-    30: {"ISE": (7.1e-2, 2.5e-3, 3.4e-3), "NISE": (2.5e-3, 8.8e-5, 1.2e-4),
-         "EISE": (2.9e-3, 1.7e-3, 1.9e-3), "time_s": (2e-3, 1.1e-2, 2.5e-2), "count": (15, 13, 15)},
-    100: {"ISE": (3.3e-2, 4.2e-4, 6.4e-3), "NISE": (1.9e-3, 2.5e-5, 3.9e-4),
-          "EISE": (2.8e-3, 1.8e-3, 2.0e-3), "time_s": (3e-3, 3.1e-2, 5.9e-2), "count": (60, 48, 60)},
+    30: {
+        "ISE": (7.1e-2, 2.5e-3, 3.4e-3),
+        "NISE": (2.5e-3, 8.8e-5, 1.2e-4),
+        "EISE": (2.9e-3, 1.7e-3, 1.9e-3),
+        "time_s": (2e-3, 1.1e-2, 2.5e-2),
+        "count": (15, 13, 15),
+    },
+    100: {
+        "ISE": (3.3e-2, 4.2e-4, 6.4e-3),
+        "NISE": (1.9e-3, 2.5e-5, 3.9e-4),
+        "EISE": (2.8e-3, 1.8e-3, 2.0e-3),
+        "time_s": (3e-3, 3.1e-2, 5.9e-2),
+        "count": (60, 48, 60),
+    },
 }
 RANDOM = {  # seed 000 §IV-B: weight range, mean range, sigma range, NL/R target
     30: ((1e-2, 0.2), (-2.0, 4.0), (0.4, 1.0), 20),
@@ -100,8 +113,7 @@ def generic_eise(gm_in, out, labels, alpha):
 
 def scope_tables(repeats):
     rows_000, rows_003, rows_best, rows_lit, data = [], [], [], [], {}
-    pcm_fixed = jax.jit(lambda g, lam, s: pcm(g, lam=lam, prune=False, alpha=ALPHA_STATIC,
-                                              range_scale=s))
+    pcm_fixed = jax.jit(lambda g, lam, s: pcm(g, lam=lam, prune=False, alpha=ALPHA_STATIC, range_scale=s))
     pcm_search = jax.jit(lambda g: pcm(g, prune=False, alpha=ALPHA_STATIC))
     g_fixed = jax.jit(lambda g, lam: gmrcm(g, lam=lam, alpha=ALPHA_003, large_factor=jnp.inf))
     g_search = jax.jit(lambda g: gmrcm(g, alpha=ALPHA_003, large_factor=jnp.inf))
@@ -114,38 +126,76 @@ def scope_tables(repeats):
             t = time_jax(pcm_fixed, gm, lam, 0.5, repeats=repeats)
             t_ref = time_python(lambda: ref.reduce_fixed(w, m, P, lam, alpha=ALPHA_STATIC), repeats=repeats)
             pc, pe, pt = PAPER_000[name][k]
-            rows_000.append([name, f"{lam:g}σ", int(info.n_out), pc, float(info.cost), pe,
-                             t["run_median_s"], pt, t_ref["run_median_s"] / t["run_median_s"]])
+            rows_000.append(
+                [
+                    name,
+                    f"{lam:g}σ",
+                    int(info.n_out),
+                    pc,
+                    float(info.cost),
+                    pe,
+                    t["run_median_s"],
+                    pt,
+                    t_ref["run_median_s"] / t["run_median_s"],
+                ]
+            )
             _, info1 = pcm_fixed(gm, lam, 1.0)
             _, _, ginfo = g_fixed(gm, lam)
             tg = time_jax(g_fixed, gm, lam, repeats=repeats)
-            rows_003.append([name, f"{lam:g}σ", int(ginfo.n_out), PAPER_003[name][k][0],
-                             float(ginfo.cost), tg["run_median_s"], PAPER_003[name][k][1]])
+            rows_003.append(
+                [
+                    name,
+                    f"{lam:g}σ",
+                    int(ginfo.n_out),
+                    PAPER_003[name][k][0],
+                    float(ginfo.cost),
+                    tg["run_median_s"],
+                    PAPER_003[name][k][1],
+                ]
+            )
             rows_lit.append([name, f"{lam:g}σ", int(info1.n_out), int(info.n_out), pc])
             data[name][f"lambda_{lam:g}"] = {
-                "pcm_count": int(info.n_out), "pcm_eise": float(info.cost), "pcm_time": t,
-                "ref_time": t_ref, "pcm_count_range_scale_1": int(info1.n_out),
-                "gmrcm_count": int(ginfo.n_out), "gmrcm_eise": float(ginfo.cost), "gmrcm_time": tg,
+                "pcm_count": int(info.n_out),
+                "pcm_eise": float(info.cost),
+                "pcm_time": t,
+                "ref_time": t_ref,
+                "pcm_count_range_scale_1": int(info1.n_out),
+                "gmrcm_count": int(ginfo.n_out),
+                "gmrcm_eise": float(ginfo.cost),
+                "gmrcm_time": tg,
             }
         t = time_jax(pcm_search, gm, repeats=repeats)  # first call compiles (same shapes later)
         out, info = pcm_search(gm)
-        t_ref = time_python(lambda: ref.pcm_grid(w, m, P, prune=False, alpha=ALPHA_STATIC),
-                            repeats=repeats)
+        t_ref = time_python(lambda: ref.pcm_grid(w, m, P, prune=False, alpha=ALPHA_STATIC), repeats=repeats)
         _, _, ginfo = g_search(gm)
         tg = time_jax(g_search, gm, repeats=repeats)
         lam_p, n_p, t_p = PAPER_003_BEST[name]
-        rows_best.append([
-            name, float(info.aux["lambda"]), int(info.n_out), float(info.cost),
-            float(info.aux["eise_grid"]), float(info.aux["eise_newton"]), int(info.aux["iterations"]),
-            bool(info.aux["used_fallback"]), t["run_median_s"], t["compile_s"],
-            t_ref["run_median_s"] / t["run_median_s"],
-            float(ginfo.aux["lambda"]), int(ginfo.n_out), float(ginfo.cost), lam_p, n_p, t_p,
-        ])
+        rows_best.append(
+            [
+                name,
+                float(info.aux["lambda"]),
+                int(info.n_out),
+                float(info.cost),
+                float(info.aux["eise_grid"]),
+                float(info.aux["eise_newton"]),
+                int(info.aux["iterations"]),
+                bool(info.aux["used_fallback"]),
+                t["run_median_s"],
+                t["compile_s"],
+                t_ref["run_median_s"] / t["run_median_s"],
+                float(ginfo.aux["lambda"]),
+                int(ginfo.n_out),
+                float(ginfo.cost),
+                lam_p,
+                n_p,
+                t_p,
+            ]
+        )
         data[name]["search"] = {
-            "pcm": {k: np.asarray(v).tolist() for k, v in info.aux.items()} | {
-                "eise": float(info.cost), "count": int(info.n_out), "time": t, "ref_time": t_ref},
-            "gmrcm": {k: np.asarray(v).tolist() for k, v in ginfo.aux.items()} | {
-                "eise": float(ginfo.cost), "count": int(ginfo.n_out), "time": tg},
+            "pcm": {k: np.asarray(v).tolist() for k, v in info.aux.items()}
+            | {"eise": float(info.cost), "count": int(info.n_out), "time": t, "ref_time": t_ref},
+            "gmrcm": {k: np.asarray(v).tolist() for k, v in ginfo.aux.items()}
+            | {"eise": float(ginfo.cost), "count": int(ginfo.n_out), "time": tg},
         }
     return rows_000, rows_003, rows_best, rows_lit, data
 
@@ -161,8 +211,7 @@ def random_tables(n, draws, repeats):
         "NL-GMR": jax.jit(lambda g: prune_top(g, target)),
         "R-GMR": jax.jit(lambda g: runnalls(g, target)),
     }
-    acc = {k: {"ISE": [], "NISE": [], "EISE": [], "count": [], "time": [], "compile": []}
-           for k in methods}
+    acc = {k: {"ISE": [], "NISE": [], "EISE": [], "count": [], "time": [], "compile": []} for k in methods}
     pcm_extra = {"lambda": [], "own_eise": [], "ref_time": [], "ref_agrees": []}
     example = None
     for draw in range(draws):
@@ -187,7 +236,8 @@ def random_tables(n, draws, repeats):
                     lam_ref, res_ref = ref.pcm_grid(w, m, P, alpha=ALPHA_RANDOM)
                     grid_only = pcm(gm, alpha=ALPHA_RANDOM, newton_steps=0)[1]
                     pcm_extra["ref_agrees"].append(
-                        bool(abs(float(grid_only.cost) - res_ref[-1]) <= 1e-9 * abs(res_ref[-1])))
+                        bool(abs(float(grid_only.cost) - res_ref[-1]) <= 1e-9 * abs(res_ref[-1]))
+                    )
         if draw == 0:
             example = (gm, {k: fn(gm)[0] for k, fn in methods.items()})
     summary = {k: {q: (float(np.mean(v)) if v else None) for q, v in d.items()} for k, d in acc.items()}
@@ -232,35 +282,76 @@ def main(argv=None):
         random_out[n] = random_tables(n, draws, repeats)
 
     md = ["# Static reduction study: PCM (seed 000) and GMRCM (seed 003)", ""]
-    md += [f"float64, CPU; {'quick run' if args.quick else 'full run'}. Times are the median of "
-           f"{repeats} calls of the compiled kernel (compile time excluded; block_until_ready); "
-           "`ref ×` is the NumPy reference's time over ours in the same process.", ""]
-    md += ["## Seed 000 Tables 2–4: search scope (PCM, no pruning as in §IV-A, α = 0.01)", "",
-           "α = 0.01 is inferred from the papers' λ = 1 rows (EISE = α·e when nothing merges); "
-           "§IV states 0.001 for the later experiments.", ""]
-    md.append(markdown_table(["case", "σ*", "count", "paper count", "EISE", "paper EISE", "time s",
-                              "paper CPU s", "ref ×"], rows_000))
+    md += [
+        f"float64, CPU; {'quick run' if args.quick else 'full run'}. Times are the median of "
+        f"{repeats} calls of the compiled kernel (compile time excluded; block_until_ready); "
+        "`ref ×` is the NumPy reference's time over ours in the same process.",
+        "",
+    ]
+    md += [
+        "## Seed 000 Tables 2–4: search scope (PCM, no pruning as in §IV-A, α = 0.01)",
+        "",
+        "α = 0.01 is inferred from the papers' λ = 1 rows (EISE = α·e when nothing merges); "
+        "§IV states 0.001 for the later experiments.",
+        "",
+    ]
+    md.append(
+        markdown_table(
+            ["case", "σ*", "count", "paper count", "EISE", "paper EISE", "time s", "paper CPU s", "ref ×"],
+            rows_000,
+        )
+    )
     md += ["", "## Seed 003 Tables 1–3: search scope (GMRCM, α = 0.3, all components clustered)", ""]
-    md.append(markdown_table(["case", "P*", "count", "paper count", "EISE", "time s",
-                              "paper CPU s"], rows_003))
+    md.append(
+        markdown_table(["case", "P*", "count", "paper count", "EISE", "time s", "paper CPU s"], rows_003)
+    )
     md += ["", "## Searched λ* (seed 000 step 7 on [1, 3]; seed 003 Table 4 on [0.5, 3])", ""]
-    md.append(markdown_table(
-        ["case", "PCM λ*", "count", "EISE", "grid best", "Newton EISE", "Newton its", "fallback",
-         "time s", "compile s (1st case only)", "ref ×", "GMRCM λ*", "count", "EISE", "paper λ*", "paper count",
-         "paper s"], rows_best))
+    md.append(
+        markdown_table(
+            [
+                "case",
+                "PCM λ*",
+                "count",
+                "EISE",
+                "grid best",
+                "Newton EISE",
+                "Newton its",
+                "fallback",
+                "time s",
+                "compile s (1st case only)",
+                "ref ×",
+                "GMRCM λ*",
+                "count",
+                "EISE",
+                "paper λ*",
+                "paper count",
+                "paper s",
+            ],
+            rows_best,
+        )
+    )
     hits1 = sum(r[2] == r[4] for r in rows_lit)
     hits05 = sum(r[3] == r[4] for r in rows_lit)
-    md += ["", "## The confidence-range reading (counts at λ = 1..4)", "",
-           "`s = 1`: the scope is λσ on each side of the mean; `s = 0.5` (default): λσ is the "
-           f"interval's full width. Counts equal to seed 000's: s = 1 {hits1}/{len(rows_lit)}, "
-           f"s = 0.5 {hits05}/{len(rows_lit)}.", ""]
+    md += [
+        "",
+        "## The confidence-range reading (counts at λ = 1..4)",
+        "",
+        "`s = 1`: the scope is λσ on each side of the mean; `s = 0.5` (default): λσ is the "
+        f"interval's full width. Counts equal to seed 000's: s = 1 {hits1}/{len(rows_lit)}, "
+        f"s = 0.5 {hits05}/{len(rows_lit)}.",
+        "",
+    ]
     md.append(markdown_table(["case", "σ*", "count s = 1", "count s = 0.5", "paper"], rows_lit))
     for n in (30, 100):
         summary, extra, _, _ = random_out[n]
         paper = PAPER_56[n]
         target = RANDOM[n][3]
-        md += ["", f"## Seed 000 Table {5 if n == 30 else 6}: {n} random components "
-               f"(NL-GMR / R-GMR keep {target}; mean of {draws} draw(s); PCM α = 0.001)", ""]
+        md += [
+            "",
+            f"## Seed 000 Table {5 if n == 30 else 6}: {n} random components "
+            f"(NL-GMR / R-GMR keep {target}; mean of {draws} draw(s); PCM α = 0.001)",
+            "",
+        ]
         names = ["NL-GMR", "PCM-GMR", "R-GMR"]
         rows = []
         for q in ("ISE", "NISE", "EISE", "count", "time"):
@@ -270,16 +361,18 @@ def main(argv=None):
                 ours = summary.get(name, {}).get(q)
                 row += ["missing" if ours is None else ours, paper[pq][k]]
             rows.append(row)
-        md.append(markdown_table(["index", "NL-GMR", "paper", "PCM-GMR", "paper", "R-GMR",
-                                  "paper"], rows))
+        md.append(markdown_table(["index", "NL-GMR", "paper", "PCM-GMR", "paper", "R-GMR", "paper"], rows))
         ref_t = extra["ref_time"][0]
         ours_t = summary["PCM-GMR"]["time"]
         compiles = ", ".join(f"{k} {v['compile']:.3g} s" for k, v in summary.items())
         md += ["", f"Compile time (first call): {compiles}."]
-        md += ["", f"PCM λ* mean {np.mean(extra['lambda']):.3g}; PCM's own EISE (on the pruned "
-               f"mixture) mean {np.mean(extra['own_eise']):.3g}; NumPy reference (grid only) "
-               f"{ref_t:.3g} s vs ours {ours_t:.3g} s (×{ref_t / ours_t:.1f}); grid-only PCM equals "
-               f"the reference: {all(extra['ref_agrees'])}."]
+        md += [
+            "",
+            f"PCM λ* mean {np.mean(extra['lambda']):.3g}; PCM's own EISE (on the pruned "
+            f"mixture) mean {np.mean(extra['own_eise']):.3g}; NumPy reference (grid only) "
+            f"{ref_t:.3g} s vs ours {ours_t:.3g} s (×{ref_t / ours_t:.1f}); grid-only PCM equals "
+            f"the reference: {all(extra['ref_agrees'])}.",
+        ]
 
     # figure
     x = np.linspace(-4, 8, 600)
@@ -306,10 +399,16 @@ def main(argv=None):
 
     data = {
         "scope": scope,
-        "random": {str(n): {"summary": random_out[n][0], "pcm": random_out[n][1],
-                            "per_draw": random_out[n][3]} for n in (30, 100)},
-        "paper": {"000_tables_2_4": PAPER_000, "003_tables_1_3": PAPER_003,
-                  "003_table_4": PAPER_003_BEST, "000_tables_5_6": {str(k): v for k, v in PAPER_56.items()}},
+        "random": {
+            str(n): {"summary": random_out[n][0], "pcm": random_out[n][1], "per_draw": random_out[n][3]}
+            for n in (30, 100)
+        },
+        "paper": {
+            "000_tables_2_4": PAPER_000,
+            "003_tables_1_3": PAPER_003,
+            "003_table_4": PAPER_003_BEST,
+            "000_tables_5_6": {str(k): v for k, v in PAPER_56.items()},
+        },
         "alpha": {"static": ALPHA_STATIC, "random": ALPHA_RANDOM, "seed003": ALPHA_003},
     }
     path = write_results("pcm_static", data, "\n".join(md), quick=args.quick)

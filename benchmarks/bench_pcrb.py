@@ -62,8 +62,10 @@ PAPER = {
 
 def _pos_vel(bound):
     b = np.asarray(bound)
-    return (np.sqrt(np.trace(b[:, :3, :3], axis1=1, axis2=2)),
-            np.sqrt(np.trace(b[:, 3:, 3:], axis1=1, axis2=2)))
+    return (
+        np.sqrt(np.trace(b[:, :3, :3], axis1=1, axis2=2)),
+        np.sqrt(np.trace(b[:, 3:, 3:], axis1=1, axis2=2)),
+    )
 
 
 def satellite_part(args, key):
@@ -82,14 +84,21 @@ def satellite_part(args, key):
         pg, vg = _pos_vel(res.bound)
 
         def small(seed):
-            return pcrb_mc(sc.model, T, args.sat_small_samples, key=jax.random.fold_in(key, seed),
-                           chunk_size=args.sat_small_samples, progress=False).bound
+            return pcrb_mc(
+                sc.model,
+                T,
+                args.sat_small_samples,
+                key=jax.random.fold_in(key, seed),
+                chunk_size=args.sat_small_samples,
+                progress=False,
+            ).bound
 
         t_small = time_jax(lambda: small(11), repeats=1 if args.quick else 3)
         ps, vs = _pos_vel(small(11))
         t0 = time.perf_counter()
-        ref = pcrb_mc(sc.model, T, n_ref, key=jax.random.fold_in(key, 12),
-                      chunk_size=min(10_000, max(n_ref // 10, 1)))
+        ref = pcrb_mc(
+            sc.model, T, n_ref, key=jax.random.fold_in(key, 12), chunk_size=min(10_000, max(n_ref // 10, 1))
+        )
         t_ref = time.perf_counter() - t0
         pr, vr = _pos_vel(ref.bound)
         out[f"sat_{tag}_time"] = sc.times
@@ -101,13 +110,25 @@ def satellite_part(args, key):
             ("GMM-49", pg, vg, timing, PAPER[f"sat_gmm_{tag}_s"]),
             (f"MC {args.sat_small_samples}", ps, vs, t_small, PAPER[f"sat_mc_small_{tag}_s"]),
         ):
-            rows.append([("R, A, E, Rdot" if rr else "R, A, E"), name,
-                         float(np.max(_rel(p[1:], pr[1:]))), float(np.max(_rel(v[1:], vr[1:]))),
-                         tm["compile_s"], tm["run_median_s"], paper])
-        rows.append([("R, A, E, Rdot" if rr else "R, A, E"), f"MC reference {n_ref:.0e}", "", "", "",
-                     t_ref, ""])
+            rows.append(
+                [
+                    ("R, A, E, Rdot" if rr else "R, A, E"),
+                    name,
+                    float(np.max(_rel(p[1:], pr[1:]))),
+                    float(np.max(_rel(v[1:], vr[1:]))),
+                    tm["compile_s"],
+                    tm["run_median_s"],
+                    paper,
+                ]
+            )
+        rows.append(
+            [("R, A, E, Rdot" if rr else "R, A, E"), f"MC reference {n_ref:.0e}", "", "", "", t_ref, ""]
+        )
         out[f"sat_{tag}_summary"] = {
-            "steps": T, "arc_s": float(sc.times[-1]), "theta0": sc.theta0, "build_s": t_build,
+            "steps": T,
+            "arc_s": float(sc.times[-1]),
+            "theta0": sc.theta0,
+            "build_s": t_build,
             "min_ppcrb_at_s": float(sc.times[1 + int(np.argmin(pg[1:]))]),
             "max_metric": float(np.max(res.info.metric)),
         }
@@ -121,8 +142,18 @@ def satellite_part(args, key):
         f"t = {out['sat_rae_summary']['min_ppcrb_at_s']:.0f} s (paper: about 600 s); "
         f"max nonlinearity metric {out['sat_rae_summary']['max_metric']:.3g} (threshold 0.01).",
         "",
-        markdown_table(["measurements", "method", "max rel. err. PPCRB", "max rel. err. VPCRB",
-                        "compile s", "run s", "paper run s (MATLAB)"], rows),
+        markdown_table(
+            [
+                "measurements",
+                "method",
+                "max rel. err. PPCRB",
+                "max rel. err. VPCRB",
+                "compile s",
+                "run s",
+                "paper run s (MATLAB)",
+            ],
+            rows,
+        ),
     ]
     return out, "\n".join(md)
 
@@ -163,16 +194,23 @@ def main(argv=None):
 
     # --- Monte Carlo reference (chunked, progress bar on stderr) ------------------------------
     t0 = time.perf_counter()
-    mc_ref = pcrb_mc(model, T, n_ref, key=jax.random.fold_in(key, 1),
-                     chunk_size=min(250_000, max(n_ref // 20, 1)))
+    mc_ref = pcrb_mc(
+        model, T, n_ref, key=jax.random.fold_in(key, 1), chunk_size=min(250_000, max(n_ref // 20, 1))
+    )
     t_ref = time.perf_counter() - t0
     ref = np.asarray(mc_ref.bound[:, 0, 0])
     ref_se = np.asarray(mc_ref.info.bound_stderr[:, 0, 0])
 
     # --- small Monte Carlo (1.2e4 samples): compile apart from run -----------------------------
     def small_mc(seed):
-        return pcrb_mc(model, T, args.small_samples, key=jax.random.fold_in(key, seed),
-                       chunk_size=args.small_samples, progress=False).bound
+        return pcrb_mc(
+            model,
+            T,
+            args.small_samples,
+            key=jax.random.fold_in(key, seed),
+            chunk_size=args.small_samples,
+            progress=False,
+        ).bound
 
     t_small = time_jax(lambda: small_mc(2), repeats=3)
     mc_small = np.asarray(small_mc(2)[:, 0, 0])
@@ -180,8 +218,16 @@ def main(argv=None):
     rng = np.random.default_rng(args.seed)
     t_small_np = time_python(
         lambda: pcrb_mc_numpy(
-            lambda X, n: _f(X, n), lambda X, n: _fp(X, n)[..., None], lambda X, n: _hp(X, n)[..., None],
-            np.eye(1) * 10.0, np.eye(1), np.zeros(1), np.eye(1), T, args.small_samples, rng,
+            lambda X, n: _f(X, n),
+            lambda X, n: _fp(X, n)[..., None],
+            lambda X, n: _hp(X, n)[..., None],
+            np.eye(1) * 10.0,
+            np.eye(1),
+            np.zeros(1),
+            np.eye(1),
+            T,
+            args.small_samples,
+            rng,
         ),
         repeats=3,
     )
@@ -202,23 +248,70 @@ def main(argv=None):
         for _ in range(3):
             pw, pm, pv = split_1d(pw, pm, pv, gh_library(8, 0.5))
         t0 = time.perf_counter()
-        b_np = pcrb_gmm_1d_numpy(_f, _fp, _hp, 10.0, 1.0, pw, pm, pv, 1.0, T, K,
-                                 gh_library(16, 1 / 40), gh_library(8, 0.5), args.quad_order)
+        b_np = pcrb_gmm_1d_numpy(
+            _f,
+            _fp,
+            _hp,
+            10.0,
+            1.0,
+            pw,
+            pm,
+            pv,
+            1.0,
+            T,
+            K,
+            gh_library(16, 1 / 40),
+            gh_library(8, 0.5),
+            args.quad_order,
+        )
         t_np = time.perf_counter() - t0
         rel = _rel(b[1:], ref[1:])
         rel_rmse = _rel(np.sqrt(b[1:]), np.sqrt(ref[1:]))
-        rows_err.append([f"GMM K = {K}", float(rel_rmse.max()), PAPER[f"max_rel_err_k{K}"],
-                         float(rel.max()), int(rel.argmax()) + 1, float(rel.mean())])
-        rows_time.append([f"GMM K = {K} (whole run)", timing["compile_s"], timing["run_median_s"],
-                          t_np, t_np / timing["run_median_s"], PAPER[f"gmm_k{K}_s"],
-                          float(np.max(np.abs(b_np - b)[:11])), float(np.max(np.abs(b_np - b)))])
+        rows_err.append(
+            [
+                f"GMM K = {K}",
+                float(rel_rmse.max()),
+                PAPER[f"max_rel_err_k{K}"],
+                float(rel.max()),
+                int(rel.argmax()) + 1,
+                float(rel.mean()),
+            ]
+        )
+        rows_time.append(
+            [
+                f"GMM K = {K} (whole run)",
+                timing["compile_s"],
+                timing["run_median_s"],
+                t_np,
+                t_np / timing["run_median_s"],
+                PAPER[f"gmm_k{K}_s"],
+                float(np.max(np.abs(b_np - b)[:11])),
+                float(np.max(np.abs(b_np - b))),
+            ]
+        )
     rel_small = _rel(mc_small[1:], ref[1:])
-    rows_err.append([f"MC {args.small_samples} samples",
-                     float(_rel(np.sqrt(mc_small[1:]), np.sqrt(ref[1:])).max()), "> GMM (Fig 4)",
-                     float(rel_small.max()), int(rel_small.argmax()) + 1, float(rel_small.mean())])
-    rows_time.append([f"MC {args.small_samples} samples", t_small["compile_s"],
-                      t_small["run_median_s"], t_small_np["run_median_s"],
-                      t_small_np["run_median_s"] / t_small["run_median_s"], PAPER["mc_small_s"], "", ""])
+    rows_err.append(
+        [
+            f"MC {args.small_samples} samples",
+            float(_rel(np.sqrt(mc_small[1:]), np.sqrt(ref[1:])).max()),
+            "> GMM (Fig 4)",
+            float(rel_small.max()),
+            int(rel_small.argmax()) + 1,
+            float(rel_small.mean()),
+        ]
+    )
+    rows_time.append(
+        [
+            f"MC {args.small_samples} samples",
+            t_small["compile_s"],
+            t_small["run_median_s"],
+            t_small_np["run_median_s"],
+            t_small_np["run_median_s"] / t_small["run_median_s"],
+            PAPER["mc_small_s"],
+            "",
+            "",
+        ]
+    )
     rows_time.append([f"MC reference {n_ref:.0e} samples", "", t_ref, "", "", "", "", ""])
 
     # --- a finer state library (not the paper's setting) ---------------------------------------
@@ -228,17 +321,28 @@ def main(argv=None):
     t32 = time_jax(lambda: run32(setup.prior_gm).bound, repeats=1)
     b32 = np.asarray(run32(setup.prior_gm).bound[:, 0, 0])
     rel32 = _rel(b32[1:], ref[1:])
-    rows_err.append(["GMM K = 64, state library M = 32",
-                     float(_rel(np.sqrt(b32[1:]), np.sqrt(ref[1:])).max()), "(not in paper)",
-                     float(rel32.max()), int(rel32.argmax()) + 1, float(rel32.mean())])
-    rows_time.append(["GMM K = 64, M = 32", t32["compile_s"], t32["run_median_s"], "", "", "", "",
-                      ""])
+    rows_err.append(
+        [
+            "GMM K = 64, state library M = 32",
+            float(_rel(np.sqrt(b32[1:]), np.sqrt(ref[1:])).max()),
+            "(not in paper)",
+            float(rel32.max()),
+            int(rel32.argmax()) + 1,
+            float(rel32.mean()),
+        ]
+    )
+    rows_time.append(["GMM K = 64, M = 32", t32["compile_s"], t32["run_median_s"], "", "", "", "", ""])
 
     mc_rel_se = float(np.max(ref_se[1:] / ref[1:]))
     b64, res64, _ = results[64]
     data = {
-        "config": {"steps": T, "mc_reference_samples": n_ref, "mc_small_samples": args.small_samples,
-                   "quad_order": args.quad_order, "seed": args.seed},
+        "config": {
+            "steps": T,
+            "mc_reference_samples": n_ref,
+            "mc_small_samples": args.small_samples,
+            "quad_order": args.quad_order,
+            "seed": args.seed,
+        },
         "ungm_time": list(range(T + 1)),
         "ungm_gmm_k64": b64,
         "ungm_gmm_k32": results[32][0],
@@ -248,11 +352,28 @@ def main(argv=None):
         "ungm_gmm_k64_state_m32": b32,
         "ungm_metric_s_case_k64": np.asarray(res64.info.metric),
         "ungm_metric_l_case_k64": np.asarray(res64.info.metric_refined),
-        "errors": [dict(zip(["method", "max_rel_err_sqrt", "paper", "max_rel_err", "at_step",
-                             "mean_rel_err"], r)) for r in rows_err],
-        "timings": [dict(zip(["part", "compile_s", "run_s", "numpy_s", "numpy_over_jax",
-                              "paper_matlab_s", "max_abs_diff_vs_numpy_steps_0_10",
-                              "max_abs_diff_vs_numpy"], r)) for r in rows_time],
+        "errors": [
+            dict(zip(["method", "max_rel_err_sqrt", "paper", "max_rel_err", "at_step", "mean_rel_err"], r))
+            for r in rows_err
+        ],
+        "timings": [
+            dict(
+                zip(
+                    [
+                        "part",
+                        "compile_s",
+                        "run_s",
+                        "numpy_s",
+                        "numpy_over_jax",
+                        "paper_matlab_s",
+                        "max_abs_diff_vs_numpy_steps_0_10",
+                        "max_abs_diff_vs_numpy",
+                    ],
+                    r,
+                )
+            )
+            for r in rows_time
+        ],
         "mc_reference_max_rel_stderr": mc_rel_se,
         "paper": PAPER,
     }
@@ -269,9 +390,17 @@ def main(argv=None):
         "",
         "## Relative error against the reference",
         "",
-        markdown_table(["method", "max rel. error of sqrt(PCRB)", "paper (max)",
-                        "max rel. error of J_n^{-1}", "at step", "mean rel. error of J_n^{-1}"],
-                       rows_err),
+        markdown_table(
+            [
+                "method",
+                "max rel. error of sqrt(PCRB)",
+                "paper (max)",
+                "max rel. error of J_n^{-1}",
+                "at step",
+                "mean rel. error of J_n^{-1}",
+            ],
+            rows_err,
+        ),
         "",
         "Reading of Figs 4-5 (documented, not tuned): the paper plots the PCRB in RMSE units -- "
         "Fig 3 shows the 'minimum RMSE' sqrt(PCRB), and §V-C defines its PCRBs (PPCRB, VPCRB) and "
@@ -281,8 +410,19 @@ def main(argv=None):
         "",
         "## Wall time (seconds)",
         "",
-        markdown_table(["part", "compile", "run", "NumPy ref. run", "NumPy / gmjax", "paper (MATLAB)",
-                        "max abs diff NumPy, n <= 10", "max abs diff NumPy, all n"], rows_time),
+        markdown_table(
+            [
+                "part",
+                "compile",
+                "run",
+                "NumPy ref. run",
+                "NumPy / gmjax",
+                "paper (MATLAB)",
+                "max abs diff NumPy, n <= 10",
+                "max abs diff NumPy, all n",
+            ],
+            rows_time,
+        ),
         "",
         "The NumPy reference runs the same Algorithm 2; k-means assignments are discontinuous, so "
         "rounding differences eventually send a component to another cluster and the two runs "

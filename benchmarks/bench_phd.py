@@ -58,12 +58,16 @@ def throughput_section(args):
     kernel = jax.jit(jax.vmap(lambda z: mt.run(f, z)))
     timing = time_jax(kernel, samples.zs, repeats=args.repeats)
     _, infos = kernel(samples.zs)
-    ospa = _ospa_over_time(infos.extra["estimates"], infos.extra["estimate_mask"], samples.states, samples.alive)
+    ospa = _ospa_over_time(
+        infos.extra["estimates"], infos.extra["estimate_mask"], samples.states, samples.alive
+    )
     n_true = np.asarray(samples.alive).sum(-1)
     card = np.asarray(infos.extra["cardinality_reduced"])
     n_est = np.asarray(infos.extra["n_estimates"])
-    flags = {"overflow_steps": int(np.asarray(infos.flags.overflow).sum()),
-             "scan_overflow_steps": int(np.asarray(samples.overflow).sum())}
+    flags = {
+        "overflow_steps": int(np.asarray(infos.flags.overflow).sum()),
+        "scan_overflow_steps": int(np.asarray(samples.overflow).sum()),
+    }
 
     # Stone Soup on the first runs, same measurement sets
     ss_section = None
@@ -88,10 +92,17 @@ def throughput_section(args):
         zs = np.asarray(samples.zs)
         times, ospa_ss, card_ss, nest_ss = [], [], [], []
         for r in range(n_ss):
-            ss = StoneSoupGMPHD(F, Q, H, R, births, survival_prob=sc.survival_prob,
-                                detection_prob=sc.detection_prob,
-                                clutter_intensity=sc.clutter_rate * sc.clutter_density,
-                                max_components=CAPACITY)
+            ss = StoneSoupGMPHD(
+                F,
+                Q,
+                H,
+                R,
+                births,
+                survival_prob=sc.survival_prob,
+                detection_prob=sc.detection_prob,
+                clutter_intensity=sc.clutter_rate * sc.clutter_density,
+                max_components=CAPACITY,
+            )
             scans = [z[~np.isnan(z[:, 0])] for z in zs[r]]
             t0 = time.perf_counter()
             out = ss.run(scans)
@@ -103,8 +114,13 @@ def throughput_section(args):
                 if len(est) == 0 and len(truth) == 0:
                     row.append(0.0)
                 else:
-                    row.append(float(mt.ospa(est[:, :2].reshape(-1, 2), truth[:, :2].reshape(-1, 2),
-                                             c=C_OSPA, p=P_OSPA)))
+                    row.append(
+                        float(
+                            mt.ospa(
+                                est[:, :2].reshape(-1, 2), truth[:, :2].reshape(-1, 2), c=C_OSPA, p=P_OSPA
+                            )
+                        )
+                    )
                 crow.append(sum(c[0] for c in comps))
                 nrow.append(len(est))
             ospa_ss.append(row)
@@ -145,8 +161,11 @@ def tuning_section(args):
     temps = (5e-6, 0.5)  # prune temperature (weight units), merge temperature (squared Mahalanobis units)
 
     def make(T, U, relaxed):
-        red = (mt.RelaxedVoMa(T, U, *temps, max_components=20) if relaxed
-               else mt.RelaxedVoMa(T, U, 0.0, 0.0, max_components=20, mode="hard"))
+        red = (
+            mt.RelaxedVoMa(T, U, *temps, max_components=20)
+            if relaxed
+            else mt.RelaxedVoMa(T, U, 0.0, 0.0, max_components=20, mode="hard")
+        )
         return mt.gm_phd(sc.model, **sc.filter_kwargs(), capacity=20, merge_capacity=80, reducer=red)
 
     base = make(1e-5, 4.0, True)
@@ -172,8 +191,12 @@ def tuning_section(args):
         params = hard.params._replace(reducer=mt.RelaxedVoMa(T, U, 0.0, 0.0, max_components=20, mode="hard"))
         _, infos = jax.vmap(lambda z: mt.run(hard, z, params=params))(samples.zs)
         f = jax.vmap(jax.vmap(lambda e, em, x, a: mt.ospa(e, x, em, a, c=C_OSPA, p=P_OSPA)))
-        return f(infos.extra["estimates"][..., :2], infos.extra["estimate_mask"], samples.states[..., :2],
-                 samples.alive)
+        return f(
+            infos.extra["estimates"][..., :2],
+            infos.extra["estimate_mask"],
+            samples.states[..., :2],
+            samples.alive,
+        )
 
     sim_sc = jax.jit(jax.vmap(lambda k: mt.simulate(sc, k)))
 
@@ -189,8 +212,15 @@ def tuning_section(args):
     for i in range(args.tune_steps):
         batch = sim(sc, jax.random.split(jax.random.PRNGKey(100 + i), args.tune_runs))
         val, g = grad_fn(theta, batch)
-        history.append({"step": i, "loss": float(val), "T": float(jnp.exp(theta[0])), "U": float(jnp.exp(theta[1])),
-                        "grad": np.asarray(g).tolist()})
+        history.append(
+            {
+                "step": i,
+                "loss": float(val),
+                "T": float(jnp.exp(theta[0])),
+                "U": float(jnp.exp(theta[1])),
+                "grad": np.asarray(g).tolist(),
+            }
+        )
         updates, opt_state = opt.update(g, opt_state)
         theta = optax.apply_updates(theta, updates)
     train_s = time.perf_counter() - t0
@@ -200,20 +230,29 @@ def tuning_section(args):
     o_tun = np.asarray(ev(theta, held)).mean(-1)
     diff = o_tun - o_def
     return {
-        "horizon": args.tune_horizon, "train_runs": args.tune_runs, "steps": args.tune_steps,
-        "optimizer": f"adam(lr={args.tune_lr})", "temperatures": temps, "train_s": train_s,
+        "horizon": args.tune_horizon,
+        "train_runs": args.tune_runs,
+        "steps": args.tune_steps,
+        "optimizer": f"adam(lr={args.tune_lr})",
+        "temperatures": temps,
+        "train_s": train_s,
         "history": history,
         "tuned": {"T": float(jnp.exp(theta[0])), "U": float(jnp.exp(theta[1]))},
         "held_out_runs": args.eval_runs,
-        "held_out_ospa_default": float(o_def.mean()), "held_out_ospa_tuned": float(o_tun.mean()),
+        "held_out_ospa_default": float(o_def.mean()),
+        "held_out_ospa_tuned": float(o_tun.mean()),
         "paired_diff": float(diff.mean()),
         "paired_diff_se": float(diff.std(ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else None,
     }
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="smoke run: 8 runs of 20 steps, 1 Stone Soup run")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke run: 8 runs of 20 steps, 1 Stone Soup run"
+    )
     parser.add_argument("--runs", type=int, default=None)
     parser.add_argument("--steps", type=int, default=None)
     parser.add_argument("--stonesoup-runs", type=int, default=None)
@@ -241,28 +280,58 @@ def main(argv=None):
 
     th = data["throughput"]
     ss = th["stonesoup"]
-    md = ["# GM-PHD Monte Carlo against Stone Soup (issue 21)", "",
-          "Timings were taken on a shared, loaded 2-core CPU machine (other agents were running tests); "
-          "compare ratios, not absolute seconds.", "",
-          f"Vo & Ma 2006 linear scenario without spawning, {th['steps']} steps, clutter 10/scan, "
-          f"J_max = {CAPACITY}, Vo–Ma T = 1e-5, U = 4; OSPA c = {C_OSPA:g} m, p = {P_OSPA:g}.", ""]
-    rows = [["gmjax (jit + vmap)", th["runs"], th["timing"]["compile_s"], th["timing"]["run_median_s"],
-             th["runs_per_s"], th["mean_ospa"]]]
+    md = [
+        "# GM-PHD Monte Carlo against Stone Soup (issue 21)",
+        "",
+        "Timings were taken on a shared, loaded 2-core CPU machine (other agents were running tests); "
+        "compare ratios, not absolute seconds.",
+        "",
+        f"Vo & Ma 2006 linear scenario without spawning, {th['steps']} steps, clutter 10/scan, "
+        f"J_max = {CAPACITY}, Vo–Ma T = 1e-5, U = 4; OSPA c = {C_OSPA:g} m, p = {P_OSPA:g}.",
+        "",
+    ]
+    rows = [
+        [
+            "gmjax (jit + vmap)",
+            th["runs"],
+            th["timing"]["compile_s"],
+            th["timing"]["run_median_s"],
+            th["runs_per_s"],
+            th["mean_ospa"],
+        ]
+    ]
     if ss:
-        rows.append(["Stone Soup loop", ss["runs"], "-", ss["seconds_per_run"] * ss["runs"], ss["runs_per_s"],
-                     ss["mean_ospa"]])
+        rows.append(
+            [
+                "Stone Soup loop",
+                ss["runs"],
+                "-",
+                ss["seconds_per_run"] * ss["runs"],
+                ss["runs_per_s"],
+                ss["mean_ospa"],
+            ]
+        )
     md.append(markdown_table(["filter", "runs", "compile s", "run s", "runs/s", "mean OSPA (m)"], rows))
     if ss:
-        md += ["", f"Speed-up (runs/s): {th['runs_per_s'] / ss['runs_per_s']:.1f}x. On the {ss['runs']} runs "
-               f"both filtered: mean OSPA gmjax {ss['mean_ospa_gmjax_same_runs']:.3f} m vs Stone Soup "
-               f"{ss['mean_ospa']:.3f} m; max |cardinality difference| {ss['max_abs_cardinality_diff']:.3g} "
-               f"(Stone Soup caps merged weights at 1 and redistributes pruned weight); the numbers of "
-               f"extracted targets agree in {100 * ss['estimate_count_agreement']:.1f} % of the steps."]
+        md += [
+            "",
+            f"Speed-up (runs/s): {th['runs_per_s'] / ss['runs_per_s']:.1f}x. On the {ss['runs']} runs "
+            f"both filtered: mean OSPA gmjax {ss['mean_ospa_gmjax_same_runs']:.3f} m vs Stone Soup "
+            f"{ss['mean_ospa']:.3f} m; max |cardinality difference| {ss['max_abs_cardinality_diff']:.3g} "
+            f"(Stone Soup caps merged weights at 1 and redistributes pruned weight); the numbers of "
+            f"extracted targets agree in {100 * ss['estimate_count_agreement']:.1f} % of the steps.",
+        ]
     else:
         md += ["", "Stone Soup not installed: no comparison."]
-    md += ["", f"gmjax flags: {th['flags']['overflow_steps']} overflow steps, "
-           f"{th['flags']['scan_overflow_steps']} scans over capacity; mean |n_est - n_true| "
-           f"{th['mean_abs_cardinality_error']:.3f}.", "", "## OSPA and cardinality over time (every 10th step)", ""]
+    md += [
+        "",
+        f"gmjax flags: {th['flags']['overflow_steps']} overflow steps, "
+        f"{th['flags']['scan_overflow_steps']} scans over capacity; mean |n_est - n_true| "
+        f"{th['mean_abs_cardinality_error']:.3f}.",
+        "",
+        "## OSPA and cardinality over time (every 10th step)",
+        "",
+    ]
     trow = []
     for k in range(0, th["steps"], max(1, th["steps"] // 10)):
         row = [k + 1, th["true_cardinality"][k], th["cardinality_over_time"][k], th["ospa_over_time"][k]]
@@ -271,15 +340,23 @@ def main(argv=None):
     md.append(markdown_table(["step", "true n", "mean PHD mass", "OSPA gmjax", "OSPA Stone Soup"], trow))
     if "tuning" in data:
         tu = data["tuning"]
-        md += ["", "## Tuning T and U by gradient (relaxed Vo–Ma, relaxed GOSPA)", "",
-               f"{tu['steps']} {tu['optimizer']} steps on {tu['train_runs']} fresh runs each "
-               f"({tu['horizon']} steps), temperatures {tu['temperatures']}: T 1e-5 -> {tu['tuned']['T']:.3g}, "
-               f"U 4 -> {tu['tuned']['U']:.3g} ({tu['train_s']:.0f} s with compile). Held-out "
-               f"({tu['held_out_runs']} paired runs, hard reduction): mean OSPA default "
-               f"{tu['held_out_ospa_default']:.3f} m, tuned {tu['held_out_ospa_tuned']:.3f} m, difference "
-               f"{tu['paired_diff']:+.3f} ± {tu['paired_diff_se'] or 0:.3f} m.", ""]
-        md.append(markdown_table(["step", "loss", "T", "U"],
-                                 [[h["step"], h["loss"], h["T"], h["U"]] for h in tu["history"]]))
+        md += [
+            "",
+            "## Tuning T and U by gradient (relaxed Vo–Ma, relaxed GOSPA)",
+            "",
+            f"{tu['steps']} {tu['optimizer']} steps on {tu['train_runs']} fresh runs each "
+            f"({tu['horizon']} steps), temperatures {tu['temperatures']}: T 1e-5 -> {tu['tuned']['T']:.3g}, "
+            f"U 4 -> {tu['tuned']['U']:.3g} ({tu['train_s']:.0f} s with compile). Held-out "
+            f"({tu['held_out_runs']} paired runs, hard reduction): mean OSPA default "
+            f"{tu['held_out_ospa_default']:.3f} m, tuned {tu['held_out_ospa_tuned']:.3f} m, difference "
+            f"{tu['paired_diff']:+.3f} ± {tu['paired_diff_se'] or 0:.3f} m.",
+            "",
+        ]
+        md.append(
+            markdown_table(
+                ["step", "loss", "T", "U"], [[h["step"], h["loss"], h["T"], h["U"]] for h in tu["history"]]
+            )
+        )
     md += ["", f"Wall time {data['wall_s']:.0f} s."]
     path = write_results("phd", data, "\n".join(md), quick=q)
     print("\n".join(md))

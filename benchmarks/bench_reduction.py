@@ -42,10 +42,16 @@ CASES = {
 
 # seed 000 Table 5 (l = 30) and Table 6 (l = 100): ISE, NISE, CPU time (s), final number
 PAPER = {
-    30: {"NL-GMR (prune_top)": (7.1e-2, 2.5e-3, 2e-3, 15), "PCM-GMR": (2.5e-3, 8.8e-5, 1.1e-2, 13),
-         "R-GMR (runnalls)": (3.4e-3, 1.2e-4, 2.5e-2, 15)},
-    100: {"NL-GMR (prune_top)": (3.3e-2, 1.9e-3, 3e-3, 60), "PCM-GMR": (4.2e-4, 2.5e-5, 3.1e-2, 48),
-          "R-GMR (runnalls)": (6.4e-3, 3.9e-4, 5.9e-2, 60)},
+    30: {
+        "NL-GMR (prune_top)": (7.1e-2, 2.5e-3, 2e-3, 15),
+        "PCM-GMR": (2.5e-3, 8.8e-5, 1.1e-2, 13),
+        "R-GMR (runnalls)": (3.4e-3, 1.2e-4, 2.5e-2, 15),
+    },
+    100: {
+        "NL-GMR (prune_top)": (3.3e-2, 1.9e-3, 3e-3, 60),
+        "PCM-GMR": (4.2e-4, 2.5e-5, 3.1e-2, 48),
+        "R-GMR (runnalls)": (6.4e-3, 3.9e-4, 5.9e-2, 60),
+    },
 }
 
 
@@ -77,8 +83,7 @@ def reducers(target, full):
     """name -> (fn(gm) -> (gm, info), max draws (None: all))."""
     out = {
         "prune_top (NL-GMR)": (lambda g: R.prune_top(g, target), None),
-        "prune_censored (rho=.9544, N_u=target)": (
-            lambda g: R.prune_censored(g, 0.9544, target), None),
+        "prune_censored (rho=.9544, N_u=target)": (lambda g: R.prune_censored(g, 0.9544, target), None),
         "runnalls (R-GMR)": (lambda g: R.runnalls(g, target), None),
         "west (KL)": (lambda g: R.west(g, target), None),
         "west (ISE)": (lambda g: R.west(g, target, metric="ise"), None),
@@ -89,13 +94,18 @@ def reducers(target, full):
     }
     if full:
         small = 20 if target == 20 else 3  # O(K^3) per step: a few draws only
-        out.update({
-            "williams": (lambda g: R.williams(g, target), small),
-            "cowa": (lambda g: R.cowa(g, target), small),
-            "runnalls + ise_refine(100)": (
-                lambda g: R.ise_refine(R.runnalls(g, target, capacity=target)[0], g,
-                                       n_steps=100, learning_rate=0.01), small),
-        })
+        out.update(
+            {
+                "williams": (lambda g: R.williams(g, target), small),
+                "cowa": (lambda g: R.cowa(g, target), small),
+                "runnalls + ise_refine(100)": (
+                    lambda g: R.ise_refine(
+                        R.runnalls(g, target, capacity=target)[0], g, n_steps=100, learning_rate=0.01
+                    ),
+                    small,
+                ),
+            }
+        )
     return out
 
 
@@ -121,12 +131,19 @@ def run_case(n, d, draws, full, rng, repeats):
         e, ne, cnt = np.asarray(e), np.asarray(ne), np.asarray(info.n_out)
         per = t["run_median_s"] / nd
         data[name] = {
-            "draws": nd, "ise_mean": e.mean(), "ise_std": e.std(), "nise_mean": ne.mean(),
-            "nise_std": ne.std(), "count_mean": cnt.mean(), "time_per_reduction_s": per,
-            "compile_s": t["compile_s"], "batch_run_s": t["run_median_s"],
+            "draws": nd,
+            "ise_mean": e.mean(),
+            "ise_std": e.std(),
+            "nise_mean": ne.mean(),
+            "nise_std": ne.std(),
+            "count_mean": cnt.mean(),
+            "time_per_reduction_s": per,
+            "compile_s": t["compile_s"],
+            "batch_run_s": t["run_median_s"],
         }
-        rows.append([name, nd, e.mean(), e.std(), ne.mean(), ne.std(), float(cnt.mean()), per,
-                     t["compile_s"]])
+        rows.append(
+            [name, nd, e.mean(), e.std(), ne.mean(), ne.std(), float(cnt.mean()), per, t["compile_s"]]
+        )
         print(f"  {n}/{d}-D {name}: {per:.3g} s/reduction, compile {t['compile_s']:.3g} s", flush=True)
     return rows, data, comps, gm
 
@@ -138,20 +155,24 @@ def throughput(comps, gm, target, n_np, repeats):
     B = gm.weights.shape[0]
     jax_rate = B / t["run_median_s"]
     sub = comps[:n_np]
-    t_naive = time_python(lambda: [ref.runnalls(w, m, P, target) for w, m, P in sub[:max(1, n_np // 5)]],
-                          repeats=1)
+    t_naive = time_python(
+        lambda: [ref.runnalls(w, m, P, target) for w, m, P in sub[: max(1, n_np // 5)]], repeats=1
+    )
     naive_rate = max(1, n_np // 5) / t_naive["run_median_s"]
-    t_cached = time_python(lambda: [ref.runnalls_cached(w, m, P, target) for w, m, P in sub],
-                           repeats=repeats)
+    t_cached = time_python(lambda: [ref.runnalls_cached(w, m, P, target) for w, m, P in sub], repeats=repeats)
     cached_rate = len(sub) / t_cached["run_median_s"]
     # same answer check on the timed mixtures
     out = kernel(jax.tree_util.tree_map(lambda a: a[: len(sub)], gm))
     r = ref.runnalls_cached(*sub[0], target)
     same = np.allclose(np.asarray(out.weights[0][:target]), r["w"], atol=1e-10)
     return {
-        "batch": B, "jax_reductions_per_s": jax_rate, "jax_compile_s": t["compile_s"],
-        "numpy_cached_reductions_per_s": cached_rate, "numpy_naive_reductions_per_s": naive_rate,
-        "speedup_vs_cached": jax_rate / cached_rate, "speedup_vs_naive": jax_rate / naive_rate,
+        "batch": B,
+        "jax_reductions_per_s": jax_rate,
+        "jax_compile_s": t["compile_s"],
+        "numpy_cached_reductions_per_s": cached_rate,
+        "numpy_naive_reductions_per_s": naive_rate,
+        "speedup_vs_cached": jax_rate / cached_rate,
+        "speedup_vs_naive": jax_rate / naive_rate,
         "same_result": bool(same),
     }
 
@@ -165,38 +186,70 @@ def main(argv=None):
     repeats = 2
     dims = (1,) if args.quick else (1, 2)
     rng = np.random.default_rng(2024)
-    md = [f"# Mixture reduction benchmark ({'quick' if args.quick else 'full'}, {draws} draws per case)",
-          "", "ISE / NISE: seed 000 eqs 42–43 against the unreduced mixture; time: batched "
-          "jit(vmap) run time per reduction (compile apart).", ""]
+    md = [
+        f"# Mixture reduction benchmark ({'quick' if args.quick else 'full'}, {draws} draws per case)",
+        "",
+        "ISE / NISE: seed 000 eqs 42–43 against the unreduced mixture; time: batched "
+        "jit(vmap) run time per reduction (compile apart).",
+        "",
+    ]
     results = {"draws": draws, "cases": {}, "paper": {str(k): v for k, v in PAPER.items()}}
-    header = ["reducer", "draws", "ISE mean", "ISE std", "NISE mean", "NISE std", "final count",
-              "s / reduction", "compile s"]
+    header = [
+        "reducer",
+        "draws",
+        "ISE mean",
+        "ISE std",
+        "NISE mean",
+        "NISE std",
+        "final count",
+        "s / reduction",
+        "compile s",
+    ]
     for d in dims:
         for n in (30, 100):
             t0 = time.perf_counter()
             rows, data, comps, gm = run_case(n, d, draws, not args.quick, rng, repeats)
             key = f"{d}d_{n}"
             results["cases"][key] = data
-            md += [f"## {d}-D, {n} -> {CASES[n]['target']} components", "",
-                   markdown_table(header, rows), ""]
+            md += [f"## {d}-D, {n} -> {CASES[n]['target']} components", "", markdown_table(header, rows), ""]
             if d == 1:
-                md += [f"Seed 000 Table {5 if n == 30 else 6} (one draw, MATLAB): ", "",
-                       markdown_table(["method", "ISE", "NISE", "CPU s", "final number"],
-                                      [[k, *v] for k, v in PAPER[n].items()]), ""]
+                md += [
+                    f"Seed 000 Table {5 if n == 30 else 6} (one draw, MATLAB): ",
+                    "",
+                    markdown_table(
+                        ["method", "ISE", "NISE", "CPU s", "final number"],
+                        [[k, *v] for k, v in PAPER[n].items()],
+                    ),
+                    "",
+                ]
             if n == 100:
                 n_np = 10 if args.quick else 50
                 tp = throughput(comps, gm, CASES[n]["target"], n_np, repeats)
                 results["cases"][key]["throughput_runnalls"] = tp
-                md += [f"Batched Runnalls {n} -> {CASES[n]['target']} ({d}-D), {tp['batch']} "
-                       "mixtures in one call:", "",
-                       markdown_table(
-                           ["implementation", "reductions / s", "gmjax speed-up"],
-                           [["gmjax jit(vmap)", tp["jax_reductions_per_s"], 1.0],
-                            ["NumPy loop, cached cost matrix", tp["numpy_cached_reductions_per_s"],
-                             tp["speedup_vs_cached"]],
-                            ["NumPy loop, recomputed costs (reference)",
-                             tp["numpy_naive_reductions_per_s"], tp["speedup_vs_naive"]]]),
-                       "", f"same result as NumPy: {tp['same_result']}", ""]
+                md += [
+                    f"Batched Runnalls {n} -> {CASES[n]['target']} ({d}-D), {tp['batch']} "
+                    "mixtures in one call:",
+                    "",
+                    markdown_table(
+                        ["implementation", "reductions / s", "gmjax speed-up"],
+                        [
+                            ["gmjax jit(vmap)", tp["jax_reductions_per_s"], 1.0],
+                            [
+                                "NumPy loop, cached cost matrix",
+                                tp["numpy_cached_reductions_per_s"],
+                                tp["speedup_vs_cached"],
+                            ],
+                            [
+                                "NumPy loop, recomputed costs (reference)",
+                                tp["numpy_naive_reductions_per_s"],
+                                tp["speedup_vs_naive"],
+                            ],
+                        ],
+                    ),
+                    "",
+                    f"same result as NumPy: {tp['same_result']}",
+                    "",
+                ]
             print(f"case {key}: {time.perf_counter() - t0:.1f} s", flush=True)
     path = write_results("reduction", results, "\n".join(md), quick=args.quick)
     print("\n".join(md))

@@ -41,18 +41,26 @@ def table8_study(study, *, newton_steps: int = 0, track_ise: bool = False):
     uses the grid search (λ spacing 0.2 over [1, 3]) and no per-step ISE by default.
     """
     filters = dict(study.filters)
-    filters["NL-GSF"] = lambda sc: build_gsf(sc.model, "ekf", PruneTop(num_out=N_U8), capacity=N_U8,
-                                             track_ise=track_ise)
+    filters["NL-GSF"] = lambda sc: build_gsf(
+        sc.model, "ekf", PruneTop(num_out=N_U8), capacity=N_U8, track_ise=track_ise
+    )
     filters["PCM-GSF"] = lambda sc: build_gsf(
-        sc.model, "ekf", PCM(max_components=N_U8, capacity=N_U8, dims=(0, 2), newton_steps=newton_steps),
-        capacity=N_U8, track_ise=track_ise)
-    filters["R-GSF"] = lambda sc: build_gsf(sc.model, "ekf", Runnalls(num_out=N_U8), capacity=N_U8,
-                                            track_ise=track_ise)
-    note = (" With this scenario's truth (an unmodelled 70 m/s^2 y-acceleration against the CV model's"
-            " Q = 0.175 G G^T) every filter loses the target (ANEES ~1e5), so the ARMSEs are far above the"
-            " paper's (the scenario is as printed: Q cannot follow the manoeuvre). This run: PCM's λ search is the 11-point grid{' + %d Newton steps' % newton_steps if newton_steps else ''}"
-            f" (the default 8 Newton steps cost ~20x more per step under vmap), and the per-step ISE is "
-            f"{'tracked' if track_ise else 'not tracked (mean ISE column is 0)'}.")
+        sc.model,
+        "ekf",
+        PCM(max_components=N_U8, capacity=N_U8, dims=(0, 2), newton_steps=newton_steps),
+        capacity=N_U8,
+        track_ise=track_ise,
+    )
+    filters["R-GSF"] = lambda sc: build_gsf(
+        sc.model, "ekf", Runnalls(num_out=N_U8), capacity=N_U8, track_ise=track_ise
+    )
+    note = (
+        " With this scenario's truth (an unmodelled 70 m/s^2 y-acceleration against the CV model's"
+        " Q = 0.175 G G^T) every filter loses the target (ANEES ~1e5), so the ARMSEs are far above the"
+        " paper's (the scenario is as printed: Q cannot follow the manoeuvre). This run: PCM's λ search is the 11-point grid{' + %d Newton steps' % newton_steps if newton_steps else ''}"
+        f" (the default 8 Newton steps cost ~20x more per step under vmap), and the per-step ISE is "
+        f"{'tracked' if track_ise else 'not tracked (mean ISE column is 0)'}."
+    )
     return study._replace(filters=filters, notes=study.notes + note)
 
 
@@ -63,7 +71,7 @@ def compact_curves(entry: dict, max_points: int = 200) -> dict:
         for key in ("position_rmse", "rmse", "nees", "n_components"):
             if key in f and isinstance(f[key], list):
                 k = max(1, -(-len(f[key]) // max_points))
-                f[key] = [float(f"{v:.4g}") for v in f[key][k - 1::k]]
+                f[key] = [float(f"{v:.4g}") for v in f[key][k - 1 :: k]]
                 f["curve_every"] = k
     return entry
 
@@ -94,37 +102,57 @@ def _rows(study, results):
     rows = []
     for name, r in results.items():
         p = study.paper.get(name, {})
-        rows.append([
-            name,
-            f"{r.position_armse:.4g} ± {r.position_armse_stderr:.2g}",
-            p.get("armse", "-"),
-            f"{r.mean_cost:.3g}" if name in study.eise_filters else "-",
-            p.get("aeise", "-"),
-            f"{r.mean_ise:.3g}",
-            f"{r.n_components.mean():.1f}",
-            f"{r.anees:.3g}",
-            f"{1e3 * r.run_s / r.n_runs:.1f}",
-            f"{r.compile_s:.1f}",
-            p.get("cpu_s", "-"),
-        ])
+        rows.append(
+            [
+                name,
+                f"{r.position_armse:.4g} ± {r.position_armse_stderr:.2g}",
+                p.get("armse", "-"),
+                f"{r.mean_cost:.3g}" if name in study.eise_filters else "-",
+                p.get("aeise", "-"),
+                f"{r.mean_ise:.3g}",
+                f"{r.n_components.mean():.1f}",
+                f"{r.anees:.3g}",
+                f"{1e3 * r.run_s / r.n_runs:.1f}",
+                f"{r.compile_s:.1f}",
+                p.get("cpu_s", "-"),
+            ]
+        )
     return rows
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="smoke run: 3 runs, Table 7 only")
     parser.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default 100)")
-    parser.add_argument("--runs-table8", type=int, default=None,
-                        help="runs for Table 8 (1000 steps each; default: --runs)")
+    parser.add_argument(
+        "--runs-table8", type=int, default=None, help="runs for Table 8 (1000 steps each; default: --runs)"
+    )
     parser.add_argument("--tables", nargs="+", default=None, choices=["jump", "range_bearing"])
-    parser.add_argument("--table8-newton", type=int, default=0,
-                        help="Newton steps of PCM's λ search in Table 8 (default 0: grid only)")
+    parser.add_argument(
+        "--table8-newton",
+        type=int,
+        default=0,
+        help="Newton steps of PCM's λ search in Table 8 (default 0: grid only)",
+    )
     parser.add_argument("--table8-ise", action="store_true", help="track the per-step ISE in Table 8")
     args = parser.parse_args(argv)
     n_runs = args.runs or (3 if args.quick else 100)
     tables = args.tables or (["jump"] if args.quick else ["jump", "range_bearing"])
-    header = ["filter", "ARMSE ± s.e.", "paper ARMSE", "AEISE", "paper AEISE", "mean ISE", "components",
-              "ANEES", "ms / run", "compile s", "paper CPU s"]
+    header = [
+        "filter",
+        "ARMSE ± s.e.",
+        "paper ARMSE",
+        "AEISE",
+        "paper AEISE",
+        "mean ISE",
+        "components",
+        "ANEES",
+        "ms / run",
+        "compile s",
+        "paper CPU s",
+    ]
     md = ["# Seed 000 Tables 7 and 8: Gaussian sum filters and a particle filter", ""]
     data = {"tables": {}}
     kept = {} if args.quick else _previous_sections(tables)
@@ -143,12 +171,20 @@ def main(argv=None):
         print(studies.format_table(study, results))
         stem = f"seed000_{study.table.split('-')[-1]}" + ("_quick" if args.quick else "")
         png = studies.plot_study(study, results, RESULTS_DIR / f"{stem}.png")
-        md += [f"## {study.title}", "", markdown_table(header, _rows(study, results)), "",
-               f"{runs} runs here; paper: {study.paper_runs or 'not stated'}. ARMSE is the time-averaged "
-               "position RMSE with its Monte Carlo standard error; AEISE is the mean EISE that PCM's search "
-               "minimised (the paper does not define it for NL/R-GSF); mean ISE is between each step's updated "
-               "mixture and its reduction; ms / run excludes compilation. The paper's CPU seconds are MATLAB "
-               "totals for all its runs.", "", f"Notes: {study.notes}", ""]
+        md += [
+            f"## {study.title}",
+            "",
+            markdown_table(header, _rows(study, results)),
+            "",
+            f"{runs} runs here; paper: {study.paper_runs or 'not stated'}. ARMSE is the time-averaged "
+            "position RMSE with its Monte Carlo standard error; AEISE is the mean EISE that PCM's search "
+            "minimised (the paper does not define it for NL/R-GSF); mean ISE is between each step's updated "
+            "mixture and its reduction; ms / run excludes compilation. The paper's CPU seconds are MATLAB "
+            "totals for all its runs.",
+            "",
+            f"Notes: {study.notes}",
+            "",
+        ]
         if png:
             md += [f"![{study.table}]({png.name})", ""]
         data["tables"][name] = compact_curves(studies.results_json(study, results))

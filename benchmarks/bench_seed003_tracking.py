@@ -77,8 +77,7 @@ def run_reducer(filt, scenario, keys):
     res = summarize(scores, n_runs=n_runs, compile_s=compile_s, run_s=run_s)
     # λ of the model-probability-weighted search, and the confidence range λ·σ_x in metres
     lam_w = (probs * lam).sum(-1)
-    return res, {"lambda": lam_w.mean(0), "range_m": (lam_w * sigma_x).mean(0),
-                 "model_probs": probs.mean(0)}
+    return res, {"lambda": lam_w.mean(0), "range_m": (lam_w * sigma_x).mean(0), "model_probs": probs.mean(0)}
 
 
 def numpy_gmrp(scenario, key, K) -> tuple[float, float]:
@@ -90,9 +89,16 @@ def numpy_gmrp(scenario, key, K) -> tuple[float, float]:
     live = lambda gm: tuple(np.asarray(a)[np.asarray(gm.mask)] for a in (gm.weights, gm.means, gm.covs))  # noqa: E731
     Fs = [manoeuvring_target.cs_transition(), manoeuvring_target.ct_transition()]
     t0 = time.perf_counter()
-    est, _ = imm_gsf_np.run_imm_gsf(live(m.prior), zs, Fs, np.eye(3), live(m.process_noise),
-                                    live(m.measurement_noise), manoeuvring_target.TRANSITION,
-                                    lambda mix: gsf_np.keep_heaviest(mix, K))
+    est, _ = imm_gsf_np.run_imm_gsf(
+        live(m.prior),
+        zs,
+        Fs,
+        np.eye(3),
+        live(m.process_noise),
+        live(m.measurement_noise),
+        manoeuvring_target.TRANSITION,
+        lambda mix: gsf_np.keep_heaviest(mix, K),
+    )
     secs = time.perf_counter() - t0
     return float(np.sqrt(np.mean((est[:, 0] - xs[1:, 0]) ** 2))), secs
 
@@ -129,14 +135,24 @@ def plot(curves, path: Path, n_runs: int) -> Path | None:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--quick", action="store_true", help="smoke run: 3 runs of 30 steps")
     parser.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default 100)")
-    parser.add_argument("--runs-gmrcm", type=int, default=None,
-                        help="runs for GMRCM, whose λ search is the slow part (default: --runs)")
+    parser.add_argument(
+        "--runs-gmrcm",
+        type=int,
+        default=None,
+        help="runs for GMRCM, whose λ search is the slow part (default: --runs)",
+    )
     parser.add_argument("--capacity", type=int, default=8, help="components kept per model filter")
-    parser.add_argument("--gmrcm-newton", type=int, default=0,
-                        help="Newton steps of GMRCM's λ search after the 11-point grid (default 0)")
+    parser.add_argument(
+        "--gmrcm-newton",
+        type=int,
+        default=0,
+        help="Newton steps of GMRCM's λ search after the 11-point grid (default 0)",
+    )
     parser.add_argument("--numpy-runs", type=int, default=None, help="runs of the NumPy reference")
     parser.add_argument("--reducers", nargs="+", default=list(REDUCERS), choices=REDUCERS)
     parser.add_argument("--motions", nargs="+", default=["circular", "step"], choices=["circular", "step"])
@@ -146,8 +162,17 @@ def main(argv=None):
     K = args.capacity
     key = jax.random.key(0)
     models = manoeuvring_target.imm_models()
-    header = ["reducer", "position ARMSE ± s.e. (m)", "paper (m)", "components (mean / max)",
-              "GMRCM λ (mean)", "ms / run", "paper s / run", "compile s", "flags"]
+    header = [
+        "reducer",
+        "position ARMSE ± s.e. (m)",
+        "paper (m)",
+        "components (mean / max)",
+        "GMRCM λ (mean)",
+        "ms / run",
+        "paper s / run",
+        "compile s",
+        "flags",
+    ]
     md = ["# Seed 003 §4.2: IMM (CS + CT) with Gaussian-sum model filters, four reducers", ""]
     data = {"runs": n_runs, "capacity_per_model": K, "gmrcm_newton_steps": args.gmrcm_newton, "motions": {}}
     curves = {}
@@ -158,34 +183,68 @@ def main(argv=None):
         paper = manoeuvring_target.PAPER[motion]
         rows, curves[motion], data["motions"][motion] = [], {}, {"reducers": {}}
         for name in args.reducers:
-            filt = build_imm_gsf(models, manoeuvring_target.TRANSITION, local="ekf",
-                                 reducer=make_reducer(name, K, args.gmrcm_newton), capacity=K)
+            filt = build_imm_gsf(
+                models,
+                manoeuvring_target.TRANSITION,
+                local="ekf",
+                reducer=make_reducer(name, K, args.gmrcm_newton),
+                capacity=K,
+            )
             runs_here = args.runs_gmrcm if (name == "GMRCM" and args.runs_gmrcm) else n_runs
             r, extra = run_reducer(filt, sc, jax.random.split(key, n_runs)[:runs_here])
             ms = 1e3 * r.run_s / runs_here
             lam_mean = float(extra["lambda"].mean()) if name == "GMRCM" else None
-            print(f"{motion} {name}: position ARMSE {r.position_armse:.3f} ± {r.position_armse_stderr:.3f} m "
-                  f"(paper {paper['armse'][name]}), components {r.n_components.mean():.1f}, "
-                  f"{ms:.1f} ms/run, compile {r.compile_s:.1f} s", flush=True)
-            rows.append([name, f"{r.position_armse:.3f} ± {r.position_armse_stderr:.2f}", paper["armse"][name],
-                         f"{r.n_components.mean():.1f} / {r.n_components.max():.1f}",
-                         "-" if lam_mean is None else f"{lam_mean:.2f}",
-                         f"{ms:.1f}" + ("" if runs_here == n_runs else f" ({runs_here} runs)"),
-                         paper["time_s"][name], f"{r.compile_s:.1f}", f"{r.flag_rate:.3f}"])
+            print(
+                f"{motion} {name}: position ARMSE {r.position_armse:.3f} ± {r.position_armse_stderr:.3f} m "
+                f"(paper {paper['armse'][name]}), components {r.n_components.mean():.1f}, "
+                f"{ms:.1f} ms/run, compile {r.compile_s:.1f} s",
+                flush=True,
+            )
+            rows.append(
+                [
+                    name,
+                    f"{r.position_armse:.3f} ± {r.position_armse_stderr:.2f}",
+                    paper["armse"][name],
+                    f"{r.n_components.mean():.1f} / {r.n_components.max():.1f}",
+                    "-" if lam_mean is None else f"{lam_mean:.2f}",
+                    f"{ms:.1f}" + ("" if runs_here == n_runs else f" ({runs_here} runs)"),
+                    paper["time_s"][name],
+                    f"{r.compile_s:.1f}",
+                    f"{r.flag_rate:.3f}",
+                ]
+            )
             if name == "GMRP":
                 gmrp_scores = r.scores
-            curves[motion][name] = {"position_rmse": r.position_rmse, "armse": r.position_armse,
-                                    "n_components": r.n_components, "runs": runs_here, **extra}
+            curves[motion][name] = {
+                "position_rmse": r.position_rmse,
+                "armse": r.position_armse,
+                "n_components": r.n_components,
+                "runs": runs_here,
+                **extra,
+            }
             data["motions"][motion]["reducers"][name] = {
-                "position_armse": r.position_armse, "position_armse_stderr": r.position_armse_stderr,
-                "armse_full_state": r.armse, "anees": r.anees, "flag_rate": r.flag_rate,
-                "runs": runs_here, "compile_s": r.compile_s, "run_s": r.run_s, "ms_per_run": ms,
-                "paper_armse": paper["armse"][name], "paper_time_s": paper["time_s"][name],
+                "position_armse": r.position_armse,
+                "position_armse_stderr": r.position_armse_stderr,
+                "armse_full_state": r.armse,
+                "anees": r.anees,
+                "flag_rate": r.flag_rate,
+                "runs": runs_here,
+                "compile_s": r.compile_s,
+                "run_s": r.run_s,
+                "ms_per_run": ms,
+                "paper_armse": paper["armse"][name],
+                "paper_time_s": paper["time_s"][name],
                 "position_rmse": np.round(r.position_rmse, 4).tolist(),
                 "n_components": np.round(r.n_components, 3).tolist(),
                 "model_probs_ct": np.round(extra["model_probs"][:, 1], 4).tolist(),
-                **({"lambda": np.round(extra["lambda"], 4).tolist(),
-                    "range_m": np.round(extra["range_m"], 3).tolist()} if name == "GMRCM" else {}),
+                **(
+                    {
+                        "lambda": np.round(extra["lambda"], 4).tolist(),
+                        "range_m": np.round(extra["range_m"], 3).tolist(),
+                    }
+                    if name == "GMRCM"
+                    else {}
+                ),
             }
         # NumPy reference (GMRP) on the first runs of the same Monte Carlo: same per-run RMSE
         if n_np and "GMRP" in args.reducers:
@@ -198,24 +257,53 @@ def main(argv=None):
             per_run_np = float(np.mean(np_s))
             ratio = per_run_np / (data["motions"][motion]["reducers"]["GMRP"]["run_s"] / n_runs)
             data["motions"][motion]["numpy_gmrp"] = {
-                "runs": n_np, "s_per_run": per_run_np, "throughput_ratio": ratio,
-                "rmse_numpy": np_rmse, "rmse_gmjax_same_runs": gm_same.tolist()}
-            rows.append([f"NumPy IMM-GSF + GMRP (reference, {n_np} run(s))", "-", "-", "-", "-",
-                         f"{1e3 * per_run_np:.1f}", "-", "0", "-"])
-            print(f"{motion} NumPy GMRP: {per_run_np:.2f} s/run; same runs RMSE NumPy {np.round(np_rmse, 6)} "
-                  f"vs gmjax {np.round(gm_same, 6)}; gmjax GMRP throughput {ratio:.0f}x", flush=True)
-        md += [f"## {motion} ({'§4.2.1' if motion == 'circular' else '§4.2.2'}), {sc.n_steps} steps", "",
-               markdown_table(header, rows), ""]
+                "runs": n_np,
+                "s_per_run": per_run_np,
+                "throughput_ratio": ratio,
+                "rmse_numpy": np_rmse,
+                "rmse_gmjax_same_runs": gm_same.tolist(),
+            }
+            rows.append(
+                [
+                    f"NumPy IMM-GSF + GMRP (reference, {n_np} run(s))",
+                    "-",
+                    "-",
+                    "-",
+                    "-",
+                    f"{1e3 * per_run_np:.1f}",
+                    "-",
+                    "0",
+                    "-",
+                ]
+            )
+            print(
+                f"{motion} NumPy GMRP: {per_run_np:.2f} s/run; same runs RMSE NumPy {np.round(np_rmse, 6)} "
+                f"vs gmjax {np.round(gm_same, 6)}; gmjax GMRP throughput {ratio:.0f}x",
+                flush=True,
+            )
+        md += [
+            f"## {motion} ({'§4.2.1' if motion == 'circular' else '§4.2.2'}), {sc.n_steps} steps",
+            "",
+            markdown_table(header, rows),
+            "",
+        ]
         if n_np and "GMRP" in args.reducers:
             d = data["motions"][motion]["numpy_gmrp"]
-            md += [f"NumPy per-run reference (IMM-GSF + GMRP, {n_np} run(s), same process): "
-                   f"{d['s_per_run']:.2f} s per run, gmjax GMRP {d['throughput_ratio']:.0f}x its throughput; "
-                   f"same runs' position RMSE NumPy {np.round(d['rmse_numpy'], 4).tolist()} vs gmjax "
-                   f"{np.round(d['rmse_gmjax_same_runs'], 4).tolist()}.", ""]
+            md += [
+                f"NumPy per-run reference (IMM-GSF + GMRP, {n_np} run(s), same process): "
+                f"{d['s_per_run']:.2f} s per run, gmjax GMRP {d['throughput_ratio']:.0f}x its throughput; "
+                f"same runs' position RMSE NumPy {np.round(d['rmse_numpy'], 4).tolist()} vs gmjax "
+                f"{np.round(d['rmse_gmjax_same_runs'], 4).tolist()}.",
+                "",
+            ]
     png = plot(curves, RESULTS_DIR / f"seed003_tracking{'_quick' if args.quick else ''}.png", n_runs)
     md += [
         f"{n_runs} Monte Carlo runs (paper: 100)"
-        + (f"; GMRCM on the first {args.runs_gmrcm} of them (its λ search is the slow part)" if args.runs_gmrcm else "")
+        + (
+            f"; GMRCM on the first {args.runs_gmrcm} of them (its λ search is the slow part)"
+            if args.runs_gmrcm
+            else ""
+        )
         + f", K = {K} components kept per model filter (the paper's "
         "'preset number' is not given), EKF components (the models are linear, so EKF = KF). GMRCM searches "
         f"λ ∈ [0.5, 3] on an 11-point grid{' plus ' + str(args.gmrcm_newton) + ' Newton steps' if args.gmrcm_newton else ' without Newton steps (under vmap its 8 Newton steps on the relaxed EISE cost about 20x the grid; --gmrcm-newton adds them)'}"

@@ -43,8 +43,14 @@ from gmjax.scenarios import uwb_velocity  # noqa: E402
 
 METHODS = bank.BANK_METHODS
 LABELS = {
-    "gsf-merge": "GSF-merge", "gsf-remove": "GSF-remove", "matched": "Matched", "kf-mm": "Kalman",
-    "red-gsfm": "Red-GSFM", "red-gsfr": "Red-GSFR", "red-pkg": "Red-PKG", "red-ssg": "Red-SSG",
+    "gsf-merge": "GSF-merge",
+    "gsf-remove": "GSF-remove",
+    "matched": "Matched",
+    "kf-mm": "Kalman",
+    "red-gsfm": "Red-GSFM",
+    "red-gsfr": "Red-GSFR",
+    "red-pkg": "Red-PKG",
+    "red-ssg": "Red-SSG",
     "red-dkg": "Red-DKG",
 }
 # Table III of the paper (recorded UWB data, 20 experiments): (x RMSE, x CEP, y RMSE, y CEP)
@@ -63,8 +69,11 @@ PAPER_FIG5_C = {1: 0.21, 2: 0.215, 3: 0.096}  # c for KL ~ 0.5 (Fig. 5)
 
 def _pad(gm: uwb_velocity.ScalarGM, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     k = len(gm.weights)
-    return (np.concatenate([gm.weights, np.zeros(n - k)]), np.concatenate([gm.means, np.zeros(n - k)]),
-            np.concatenate([gm.variances, np.ones(n - k)]))
+    return (
+        np.concatenate([gm.weights, np.zeros(n - k)]),
+        np.concatenate([gm.means, np.zeros(n - k)]),
+        np.concatenate([gm.variances, np.ones(n - k)]),
+    )
 
 
 def _kernels(n_steps: int):
@@ -75,10 +84,14 @@ def _kernels(n_steps: int):
         return uwb_velocity.rwv_model(uwb_velocity.ScalarGM(*p[0]), uwb_velocity.ScalarGM(*p[1]))
 
     def simulate(p, key):
-        return uwb_velocity.simulate_labeled(uwb_velocity.ScalarGM(*p[0]), uwb_velocity.ScalarGM(*p[1]), key, n_steps=n_steps)
+        return uwb_velocity.simulate_labeled(
+            uwb_velocity.ScalarGM(*p[0]), uwb_velocity.ScalarGM(*p[1]), key, n_steps=n_steps
+        )
 
     return {
-        m: jax.jit(lambda params, keys, m=m: bank.sweep_errors(m, make_model, simulate, params, keys, noise_gain=G))
+        m: jax.jit(
+            lambda params, keys, m=m: bank.sweep_errors(m, make_model, simulate, params, keys, noise_gain=G)
+        )
         for m in METHODS
     }
 
@@ -90,7 +103,11 @@ def _scores(errors: np.ndarray) -> dict[str, np.ndarray]:
     mse = mse_run.mean(axis=1)
     se_mse = mse_run.std(axis=1, ddof=1) / np.sqrt(mse_run.shape[1])
     rmse = np.sqrt(mse)
-    return {"rmse": rmse, "rmse_se": se_mse / (2 * rmse), "cep": np.median(np.abs(e).reshape(e.shape[0], -1), axis=1)}
+    return {
+        "rmse": rmse,
+        "rmse_se": se_mse / (2 * rmse),
+        "cep": np.median(np.abs(e).reshape(e.shape[0], -1), axis=1),
+    }
 
 
 def _run_all(kernels, params, keys) -> tuple[dict, dict, dict]:
@@ -105,7 +122,9 @@ def _run_all(kernels, params, keys) -> tuple[dict, dict, dict]:
         compiled = kernels[m].lower(params, keys[:chunk]).compile()  # ahead-of-time: compile apart from run
         comp = time.perf_counter() - t0
         t0 = time.perf_counter()
-        err = np.concatenate([np.asarray(block(compiled(params, keys[i:i + chunk]))) for i in starts], axis=1)
+        err = np.concatenate(
+            [np.asarray(block(compiled(params, keys[i : i + chunk]))) for i in starts], axis=1
+        )
         run = time.perf_counter() - t0
         timing[m] = {"compile_s": comp, "run_s": run}
         scores[m] = {k: v.tolist() for k, v in _scores(err).items()}
@@ -125,8 +144,13 @@ def _numpy_reference(params, keys, n_steps: int, n_ref: int, head: dict) -> dict
     F = np.array([[1.0, uwb_velocity.DT], [0.0, 1.0]])
     H = np.array([[1.0, 0.0]])
     G = np.asarray(uwb_velocity.noise_gain())
-    sim = jax.jit(jax.vmap(lambda k: uwb_velocity.simulate_labeled(uwb_velocity.ScalarGM(*p0[0]), uwb_velocity.ScalarGM(*p0[1]),
-                                                              k, n_steps=n_steps)))
+    sim = jax.jit(
+        jax.vmap(
+            lambda k: uwb_velocity.simulate_labeled(
+                uwb_velocity.ScalarGM(*p0[0]), uwb_velocity.ScalarGM(*p0[1]), k, n_steps=n_steps
+            )
+        )
+    )
     runs = [np.asarray(a) for a in sim(keys[:n_ref])]
     out = {}
     for m in ("gsf-merge", "red-gsfm", "red-ssg"):
@@ -195,18 +219,32 @@ def main(argv=None) -> dict:
     for model in (1, 2, 3):
         cs = [uwb_velocity.c_for_kl(model, kl) for kl in targets]
         base = uwb_velocity.SYNTHETIC_MODELS[model]
-        gms = [uwb_velocity.ScalarGM(base.weights, tuple(c * mm for mm in base.means), base.variances) for c in cs]
+        gms = [
+            uwb_velocity.ScalarGM(base.weights, tuple(c * mm for mm in base.means), base.variances)
+            for c in cs
+        ]
         kl_q = [uwb_velocity.kl_to_moment_matched(g) for g in gms]
-        kl_mc = [uwb_velocity.kl_to_moment_matched(g, method="mc", key=jax.random.fold_in(k_kl, 10 * model + i),
-                                              return_stderr=True) for i, g in enumerate(gms)]
-        synthetic[str(model)] = {"c": cs, "kl_target": targets, "kl_quadrature": kl_q,
-                                 "kl_mc": [a for a, _ in kl_mc], "kl_mc_se": [b for _, b in kl_mc]}
+        kl_mc = [
+            uwb_velocity.kl_to_moment_matched(
+                g, method="mc", key=jax.random.fold_in(k_kl, 10 * model + i), return_stderr=True
+            )
+            for i, g in enumerate(gms)
+        ]
+        synthetic[str(model)] = {
+            "c": cs,
+            "kl_target": targets,
+            "kl_quadrature": kl_q,
+            "kl_mc": [a for a, _ in kl_mc],
+            "kl_mc_se": [b for _, b in kl_mc],
+        }
         for g in gms:
             arr = tuple(np.asarray(a, float) for a in g)
             plist.append(arr)
             qlist.append(arr)
-    params = (tuple(jnp.asarray(np.stack([p[i] for p in plist])) for i in range(3)),
-              tuple(jnp.asarray(np.stack([p[i] for p in qlist])) for i in range(3)))
+    params = (
+        tuple(jnp.asarray(np.stack([p[i] for p in plist])) for i in range(3)),
+        tuple(jnp.asarray(np.stack([p[i] for p in qlist])) for i in range(3)),
+    )
     keys = jax.random.split(k_syn, n_runs)
     kernels = _kernels(n_steps)
     print("synthetic sweep (one kernel per filter):", flush=True)
@@ -216,18 +254,25 @@ def main(argv=None) -> dict:
     P = len(targets)
     for i, model in enumerate((1, 2, 3)):
         synthetic[str(model)]["scores"] = {
-            m: {k: v[i * P:(i + 1) * P] for k, v in scores[m].items()} for m in METHODS
+            m: {k: v[i * P : (i + 1) * P] for k, v in scores[m].items()} for m in METHODS
         }
 
     # --- Table III counterpart: Table II noises, simulated, x and y padded to one shape
     uwb_p = [_pad(uwb_velocity.UWB_NOISES[a]["process"], 9) for a in ("x", "y")]
     uwb_m = [_pad(uwb_velocity.UWB_NOISES[a]["measurement"], 3) for a in ("x", "y")]
-    uparams = (tuple(jnp.asarray(np.stack([p[i] for p in uwb_p])) for i in range(3)),
-               tuple(jnp.asarray(np.stack([p[i] for p in uwb_m])) for i in range(3)))
+    uparams = (
+        tuple(jnp.asarray(np.stack([p[i] for p in uwb_p])) for i in range(3)),
+        tuple(jnp.asarray(np.stack([p[i] for p in uwb_m])) for i in range(3)),
+    )
     print("UWB (Table II models, simulated):", flush=True)
     uscores, utiming, _ = _run_all(kernels, uparams, jax.random.split(k_uwb, n_runs))
-    uwb_kl = {a: {n: uwb_velocity.kl_to_moment_matched(uwb_velocity.UWB_NOISES[a][n]) for n in ("process", "measurement")}
-              for a in ("x", "y")}
+    uwb_kl = {
+        a: {
+            n: uwb_velocity.kl_to_moment_matched(uwb_velocity.UWB_NOISES[a][n])
+            for n in ("process", "measurement")
+        }
+        for a in ("x", "y")
+    }
 
     n_ref = 3 if quick else 5
     reference = _numpy_reference(params, keys, n_steps, n_ref, head)
@@ -237,13 +282,24 @@ def main(argv=None) -> dict:
         r["speedup"] = r["numpy_s_per_run"] / jax_per_run[m]
 
     results = {
-        "config": {"n_runs": n_runs, "n_steps": n_steps, "kl_targets": targets, "dt": uwb_velocity.DT,
-                   "prior_cov": "100 I", "seed": args.seed},
+        "config": {
+            "n_runs": n_runs,
+            "n_steps": n_steps,
+            "kl_targets": targets,
+            "dt": uwb_velocity.DT,
+            "prior_cov": "100 I",
+            "seed": args.seed,
+        },
         "synthetic": synthetic,
-        "uwb_simulated": {"scores": {m: uscores[m] for m in METHODS}, "kl_quadrature": uwb_kl,
-                          "paper_table3": PAPER_TABLE3},
-        "fig5_check": {str(m): {"c": c, "kl_quadrature": float(uwb_velocity.kl_curve(m, [c])[0])}
-                       for m, c in PAPER_FIG5_C.items()},
+        "uwb_simulated": {
+            "scores": {m: uscores[m] for m in METHODS},
+            "kl_quadrature": uwb_kl,
+            "paper_table3": PAPER_TABLE3,
+        },
+        "fig5_check": {
+            str(m): {"c": c, "kl_quadrature": float(uwb_velocity.kl_curve(m, [c])[0])}
+            for m, c in PAPER_FIG5_C.items()
+        },
         "timing": {"synthetic": timing, "uwb": utiming, "synthetic_sweep_total_s": sweep_s},
         "numpy_reference": reference,
         "note": "timings taken on a shared, loaded 2-core CPU machine (other jobs running)",
@@ -278,17 +334,26 @@ def _markdown(res: dict, pngs: list[str]) -> str:
             rows.append([f"Model {model}", c, kq, f"{km:.4f} ± {se:.4f}"])
     lines += [markdown_table(["model", "c", "KL (quadrature)", "KL (MC, 2e5)"], rows), ""]
     f5 = res["fig5_check"]
-    lines += ["Paper Fig. 5: c = 0.21 / 0.215 / 0.096 give KL ≈ 0.5 for Models 1 / 2 / 3; our quadrature KL there: "
-              + " / ".join(f"{f5[m]['kl_quadrature']:.3f}" for m in ("1", "2", "3")) + ".", ""]
+    lines += [
+        "Paper Fig. 5: c = 0.21 / 0.215 / 0.096 give KL ≈ 0.5 for Models 1 / 2 / 3; our quadrature KL there: "
+        + " / ".join(f"{f5[m]['kl_quadrature']:.3f}" for m in ("1", "2", "3"))
+        + ".",
+        "",
+    ]
     for model, fig_no in (("1", 2), ("2", 3), ("3", 4)):
         s = res["synthetic"][model]
         lines += [f"## Model {model} (paper Fig. {fig_no}): position RMSE vs KL", ""]
         header = ["KL"] + [LABELS[m] for m in METHODS]
-        rows = [[f"{kl:.2f}"] + [f"{s['scores'][m]['rmse'][i]:.3g}±{s['scores'][m]['rmse_se'][i]:.2g}"
-                                 for m in METHODS] for i, kl in enumerate(s["kl_quadrature"])]
+        rows = [
+            [f"{kl:.2f}"]
+            + [f"{s['scores'][m]['rmse'][i]:.3g}±{s['scores'][m]['rmse_se'][i]:.2g}" for m in METHODS]
+            for i, kl in enumerate(s["kl_quadrature"])
+        ]
         lines += [markdown_table(header, rows), "", f"Model {model}: CEP vs KL", ""]
-        rows = [[f"{kl:.2f}"] + [f"{s['scores'][m]['cep'][i]:.3g}" for m in METHODS]
-                for i, kl in enumerate(s["kl_quadrature"])]
+        rows = [
+            [f"{kl:.2f}"] + [f"{s['scores'][m]['cep'][i]:.3g}" for m in METHODS]
+            for i, kl in enumerate(s["kl_quadrature"])
+        ]
         lines += [markdown_table(header, rows), ""]
     u = res["uwb_simulated"]
     lines += [
@@ -307,23 +372,58 @@ def _markdown(res: dict, pngs: list[str]) -> str:
         sc = u["scores"][m]
         p = PAPER_TABLE3.get(m)
         paper = [f"{v:.1f}" for v in p] if p else ["—"] * 4
-        rows.append([LABELS[m], f"{sc['rmse'][0]:.1f}", paper[0], f"{sc['cep'][0]:.1f}", paper[1],
-                     f"{sc['rmse'][1]:.1f}", paper[2], f"{sc['cep'][1]:.1f}", paper[3]])
-    lines += [markdown_table(["filter", "x RMSE", "paper", "x CEP", "paper", "y RMSE", "paper", "y CEP", "paper"],
-                             rows), ""]
+        rows.append(
+            [
+                LABELS[m],
+                f"{sc['rmse'][0]:.1f}",
+                paper[0],
+                f"{sc['cep'][0]:.1f}",
+                paper[1],
+                f"{sc['rmse'][1]:.1f}",
+                paper[2],
+                f"{sc['cep'][1]:.1f}",
+                paper[3],
+            ]
+        )
+    lines += [
+        markdown_table(
+            ["filter", "x RMSE", "paper", "x CEP", "paper", "y RMSE", "paper", "y CEP", "paper"], rows
+        ),
+        "",
+    ]
     t = res["timing"]
     flags = res.get("xla_flags") or "(none)"
-    lines += ["## Speed", "", f"XLA_FLAGS: `{flags}`.", "",
-              f"Synthetic sweep, all nine filters: {t['synthetic_sweep_total_s']:.1f} s in total "
-              f"({3 * len(cfg['kl_targets'])} points × {cfg['n_runs']} runs × {cfg['n_steps']} steps per filter, "
-              "compilation included).", ""]
-    rows = [[LABELS[m], t["synthetic"][m]["compile_s"], t["synthetic"][m]["run_s"], t["uwb"][m]["run_s"]]
-            for m in METHODS]
+    lines += [
+        "## Speed",
+        "",
+        f"XLA_FLAGS: `{flags}`.",
+        "",
+        f"Synthetic sweep, all nine filters: {t['synthetic_sweep_total_s']:.1f} s in total "
+        f"({3 * len(cfg['kl_targets'])} points × {cfg['n_runs']} runs × {cfg['n_steps']} steps per filter, "
+        "compilation included).",
+        "",
+    ]
+    rows = [
+        [LABELS[m], t["synthetic"][m]["compile_s"], t["synthetic"][m]["run_s"], t["uwb"][m]["run_s"]]
+        for m in METHODS
+    ]
     lines += [markdown_table(["filter", "compile s", "synthetic run s", "UWB run s"], rows), ""]
-    rows = [[LABELS[m], r["numpy_s_per_run"] * 1e3, r["jax_s_per_run"] * 1e3, r["speedup"], r["max_abs_diff_vs_jax"]]
-            for m, r in res["numpy_reference"].items()]
-    lines += ["NumPy reference (`reference/bank_np.py`, one run at a time) vs the batched kernel, per run:", "",
-              markdown_table(["filter", "NumPy ms/run", "JAX ms/run", "ratio", "max |Δ error|"], rows), ""]
+    rows = [
+        [
+            LABELS[m],
+            r["numpy_s_per_run"] * 1e3,
+            r["jax_s_per_run"] * 1e3,
+            r["speedup"],
+            r["max_abs_diff_vs_jax"],
+        ]
+        for m, r in res["numpy_reference"].items()
+    ]
+    lines += [
+        "NumPy reference (`reference/bank_np.py`, one run at a time) vs the batched kernel, per run:",
+        "",
+        markdown_table(["filter", "NumPy ms/run", "JAX ms/run", "ratio", "max |Δ error|"], rows),
+        "",
+    ]
     if pngs:
         lines += ["Plots: " + ", ".join(f"`{p}`" for p in pngs), ""]
     return "\n".join(lines)

@@ -87,15 +87,19 @@ def run(*, draws: int = 1000, seed: int = 0, out: Path = Path("gmjax_out"), plot
     key = jax.random.key(seed)
     dtype = str(jnp.zeros(()).dtype)
     results = {}
-    print(f"gmjax {gmjax.__version__} (JAX {jax.__version__}): static random cases of Xu et al. (PCM), {draws} draws "
-          f"each, seed {seed}, {dtype}, on {jax.devices()[0].platform.upper()}")
+    print(
+        f"gmjax {gmjax.__version__} (JAX {jax.__version__}): static random cases of Xu et al. (PCM), {draws} draws "
+        f"each, seed {seed}, {dtype}, on {jax.devices()[0].platform.upper()}"
+    )
     first_draws = {}
     for case_key, case in zip(jax.random.split(key, len(CASES)), CASES):
         gms = draw_mixtures(case, case_key, draws)
         first_draws[case.name] = jax.tree_util.tree_map(lambda a: a[0], gms)
         rows: dict[str, dict[str, Any]] = {}
         print(f"\ncase {case.name} ({case.n_components} components, 1-D)")
-        print(f"{'approximation':38s} {'ISE mean ± std':>24s} {'NISE mean ± std':>24s} {'count':>7s} {'time s':>8s}")
+        print(
+            f"{'approximation':38s} {'ISE mean ± std':>24s} {'NISE mean ± std':>24s} {'count':>7s} {'time s':>8s}"
+        )
         for name, fn in approximations(case).items():
             scored = jax.jit(jax.vmap(lambda g: _score(g, fn(g))))  # noqa: B023 (run in this iteration)
             t0 = time.perf_counter()
@@ -104,16 +108,25 @@ def run(*, draws: int = 1000, seed: int = 0, out: Path = Path("gmjax_out"), plot
             rows[name] = {k: {"mean": float(v.mean()), "std": float(v.std())} for k, v in res.items()}
             rows[name]["seconds_incl_compile"] = elapsed
             r = rows[name]
-            print(f"{name:38s} {r['ise']['mean']:11.3e} ± {r['ise']['std']:10.3e} "
-                  f"{r['nise']['mean']:11.3e} ± {r['nise']['std']:10.3e} {r['count']['mean']:7.1f} {elapsed:8.2f}")
+            print(
+                f"{name:38s} {r['ise']['mean']:11.3e} ± {r['ise']['std']:10.3e} "
+                f"{r['nise']['mean']:11.3e} ± {r['nise']['std']:10.3e} {r['count']['mean']:7.1f} {elapsed:8.2f}"
+            )
         results[case.name] = rows
     from gmjax.montecarlo import json_safe
 
-    summary = {"draws": draws, "seed": seed, "dtype": dtype, "gmjax_version": gmjax.__version__,
-               "jax_version": jax.__version__,
-               "config": {"cases": [c._asdict() for c in CASES], "approximations": {
-                   c.name: list(approximations(c)) for c in CASES}},
-               "cases": results}
+    summary = {
+        "draws": draws,
+        "seed": seed,
+        "dtype": dtype,
+        "gmjax_version": gmjax.__version__,
+        "jax_version": jax.__version__,
+        "config": {
+            "cases": [c._asdict() for c in CASES],
+            "approximations": {c.name: list(approximations(c)) for c in CASES},
+        },
+        "cases": results,
+    }
     (out / "default_study.json").write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False))
     print(f"\nwrote {out / 'default_study.json'}")
     if plot:

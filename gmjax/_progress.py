@@ -53,8 +53,17 @@ class Progress:
         min_interval_s: at most one redraw per this many seconds (the last one always shows).
     """
 
-    def __init__(self, total: int, desc: str = "", unit: str = "runs", *, enabled: bool = True,
-                 stream: IO[str] | None = None, min_interval_s: float = 0.1, initial: int = 0):
+    def __init__(
+        self,
+        total: int,
+        desc: str = "",
+        unit: str = "runs",
+        *,
+        enabled: bool = True,
+        stream: IO[str] | None = None,
+        min_interval_s: float = 0.1,
+        initial: int = 0,
+    ):
         self.total = max(int(total), 1)
         self.desc = desc
         self.unit = unit
@@ -115,9 +124,11 @@ class Progress:
         bar = "#" * filled + "." * (width - filled)
         label = f"{self.desc} " if self.desc else ""
         rate_s = f"{rate:.1f}" if rate == rate else "?"
-        line = (f"{label}[{bar}] {self.done}/{self.total} {self.unit}  {rate_s} {self.unit}/s  "
-                f"elapsed {_fmt_seconds(elapsed)}  ETA {_fmt_seconds(eta if not final else 0.0)}"
-                f"{'  ' + postfix if postfix else ''}")
+        line = (
+            f"{label}[{bar}] {self.done}/{self.total} {self.unit}  {rate_s} {self.unit}/s  "
+            f"elapsed {_fmt_seconds(elapsed)}  ETA {_fmt_seconds(eta if not final else 0.0)}"
+            f"{'  ' + postfix if postfix else ''}"
+        )
         if self._interactive:
             self.stream.write("\r" + line + ("\n" if final else ""))
         else:

@@ -19,6 +19,7 @@ else:
     def dataclass_transform(**kwargs):
         return lambda decorator: decorator
 
+
 __all__ = ["pytree_dataclass", "static_field"]
 
 T = TypeVar("T")

@@ -57,9 +57,7 @@ def validate_mixture(gm: GaussianMixture, name: str = "gm") -> None:
             pad = ~mask
             if ok and pad.any():
                 d = m.shape[1]
-                ok = bool(
-                    (w[pad] == 0).all() and (m[pad] == 0).all() and (P[pad] == np.eye(d)).all()
-                )
+                ok = bool((w[pad] == 0).all() and (m[pad] == 0).all() and (P[pad] == np.eye(d)).all())
     except np.linalg.LinAlgError:
         ok = False
     if not ok:

@@ -33,8 +33,11 @@ def _available_benchmarks() -> list[str]:
 def _run_bench(name: str, rest: Sequence[str]) -> int:
     names = _available_benchmarks()
     if not names:
-        print(f"gmjax bench: no benchmarks/ folder next to the package ({_BENCH_DIR}); "
-              "benchmarks run from a source checkout (pip install -e .)", file=sys.stderr)
+        print(
+            f"gmjax bench: no benchmarks/ folder next to the package ({_BENCH_DIR}); "
+            "benchmarks run from a source checkout (pip install -e .)",
+            file=sys.stderr,
+        )
         return 2
     if name not in names:
         print(f"gmjax bench: unknown benchmark {name!r}; available: {', '.join(names)}", file=sys.stderr)
@@ -61,14 +64,18 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command")
 
     study = sub.add_parser("study", help="run a Monte Carlo study of a paper scenario")
-    study.add_argument("name", nargs="?", default="jump", help="study name (default: jump); 'list' lists them")
+    study.add_argument(
+        "name", nargs="?", default="jump", help="study name (default: jump); 'list' lists them"
+    )
     _add_study_args(study)
 
     repro = sub.add_parser("reproduce", help="reproduce a paper table; without TABLE, list them")
     repro.add_argument("table", nargs="?", help="e.g. seed000-table7")
     _add_study_args(repro)
 
-    static = sub.add_parser("static", help="static random reduction cases of Xu et al. (PCM) (Tables 5-6 style)")
+    static = sub.add_parser(
+        "static", help="static random reduction cases of Xu et al. (PCM) (Tables 5-6 style)"
+    )
     static.add_argument("--draws", type=int, default=1000, help="random mixtures per case (default 1000)")
     static.add_argument("--seed", type=int, default=0, help="PRNG seed, 0 <= seed < 2**63 (default 0)")
     static.add_argument("--out", type=Path, default=Path("gmjax_out"), help="folder for the PNG and JSON")
@@ -125,8 +132,16 @@ def _run_study(name: str, args: argparse.Namespace) -> int:
         raise UsageError(f"--chunk-size: must be >= 1, got {args.chunk_size}")
     _check_common(args)
     _set_dtype(args)
-    return studies.study_main(name, args.runs, seed=args.seed, filters=args.filters, out=args.out,
-                              as_json=args.json, chunk_size=args.chunk_size, plot=not args.no_plot)
+    return studies.study_main(
+        name,
+        args.runs,
+        seed=args.seed,
+        filters=args.filters,
+        out=args.out,
+        as_json=args.json,
+        chunk_size=args.chunk_size,
+        plot=not args.no_plot,
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -176,9 +176,7 @@ def _check_dims(**arrays: ArrayLike) -> None:
             raise ValueError(f"{name}: expected a (d,) vector, got a scalar")
         dims[name] = shape[-1]
     if len(set(dims.values())) > 1:
-        raise ValueError(
-            "dimension mismatch: " + ", ".join(f"{n} has d={v}" for n, v in dims.items())
-        )
+        raise ValueError("dimension mismatch: " + ", ".join(f"{n} has d={v}" for n, v in dims.items()))
 
 
 def mahalanobis_sq(x: ArrayLike, mean: ArrayLike, cov: ArrayLike) -> Scalar:
@@ -218,9 +216,7 @@ def pdf(x: ArrayLike, mean: ArrayLike, cov: ArrayLike) -> Scalar:
     return jnp.exp(logpdf(x, mean, cov))
 
 
-def log_product_normalizer(
-    mean1: ArrayLike, cov1: ArrayLike, mean2: ArrayLike, cov2: ArrayLike
-) -> Scalar:
+def log_product_normalizer(mean1: ArrayLike, cov1: ArrayLike, mean2: ArrayLike, cov2: ArrayLike) -> Scalar:
     """``log ∫ N(x; m1, P1) N(x; m2, P2) dx = log N(m1; m2, P1 + P2)`` (seed 000 eqs 34–35).
 
     ``P1 + P2`` is positive definite whenever both inputs are, so no jitter repair is attempted:
@@ -234,16 +230,12 @@ def log_product_normalizer(
     return -0.5 * (d * _LOG_2PI + jnp.sum(r * r)) - jnp.sum(jnp.log(jnp.diagonal(L)))
 
 
-def product_normalizer(
-    mean1: ArrayLike, cov1: ArrayLike, mean2: ArrayLike, cov2: ArrayLike
-) -> Scalar:
+def product_normalizer(mean1: ArrayLike, cov1: ArrayLike, mean2: ArrayLike, cov2: ArrayLike) -> Scalar:
     """``∫ N(x; m1, P1) N(x; m2, P2) dx = N(m1; m2, P1 + P2)`` (seed 000 eqs 34–35)."""
     return jnp.exp(log_product_normalizer(mean1, cov1, mean2, cov2))
 
 
-def kl_divergence(
-    mean1: ArrayLike, cov1: ArrayLike, mean2: ArrayLike, cov2: ArrayLike
-) -> Scalar:
+def kl_divergence(mean1: ArrayLike, cov1: ArrayLike, mean2: ArrayLike, cov2: ArrayLike) -> Scalar:
     """``KL(N(m1, P1) || N(m2, P2))`` in closed form.
 
     ``0.5 * [tr(P2^{-1} P1) + (m2 - m1)^T P2^{-1} (m2 - m1) - d + log det P2 - log det P1]``.
@@ -318,7 +310,9 @@ def spd_kl(m1: Array, P1: Array, m2: Array, P2: Array) -> jax.Array:
     return 0.5 * (tr + spd_inv_quad(m2 - m1, P2) - d + spd_logdet(P2) - spd_logdet(P1))
 
 
-def moment_merge_pair(w1: Array, m1: Array, P1: Array, w2: Array, m2: Array, P2: Array) -> tuple[Array, Array, Array]:
+def moment_merge_pair(
+    w1: Array, m1: Array, P1: Array, w2: Array, m2: Array, P2: Array
+) -> tuple[Array, Array, Array]:
     """Moment-preserving merge of two components (seed 002 eqs 70–72 written with ``lambda_i``).
 
     ``W = w1 + w2``, ``l_i = w_i / W``, ``m = l1 m1 + l2 m2``,

@@ -97,9 +97,7 @@ def kl_mc(a: GaussianMixture, b: GaussianMixture, key: PRNGKey, n: int) -> Array
     return kl_mc_with_stderr(a, b, key, n)[0]
 
 
-def kl_mc_with_stderr(
-    a: GaussianMixture, b: GaussianMixture, key: PRNGKey, n: int
-) -> tuple[Array, Array]:
+def kl_mc_with_stderr(a: GaussianMixture, b: GaussianMixture, key: PRNGKey, n: int) -> tuple[Array, Array]:
     """:func:`kl_mc` and its Monte Carlo standard error."""
     check_same_dim(a, b)
     la = log_weights(a) - jax.scipy.special.logsumexp(log_weights(a))
@@ -168,7 +166,9 @@ def nees(estimates: ArrayLike, covs: ArrayLike, truths: ArrayLike) -> Array:
     batch = estimates.shape[:-1]
     d = estimates.shape[-1]
     if covs.shape != batch + (d, d):
-        raise ValueError(f"covs: expected shape {batch + (d, d)} to match estimates {estimates.shape}, got {covs.shape}")
+        raise ValueError(
+            f"covs: expected shape {batch + (d, d)} to match estimates {estimates.shape}, got {covs.shape}"
+        )
     f = jax.vmap(gaussian.mahalanobis_sq)
     out = f(truths.reshape(-1, d), estimates.reshape(-1, d), covs.reshape(-1, d, d))
     return out.reshape(batch)

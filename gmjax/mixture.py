@@ -150,9 +150,7 @@ class GaussianMixture(NamedTuple):
         M[:n] = m
         C = np.broadcast_to(np.eye(d, dtype=dtype), (K, d, d)).copy()
         C[:n] = P
-        return cls(
-            jnp.asarray(W, dtype), jnp.asarray(M, dtype), jnp.asarray(C, dtype), jnp.asarray(mask)
-        )
+        return cls(jnp.asarray(W, dtype), jnp.asarray(M, dtype), jnp.asarray(C, dtype), jnp.asarray(mask))
 
     @classmethod
     def from_arrays(
@@ -262,7 +260,9 @@ def check(gm: GaussianMixture) -> GaussianMixture:
     w, m, P, mask = (np.asarray(a) for a in gm)
     for name, arr in (("weights", w), ("means", m), ("covs", P)):
         if not jnp.issubdtype(arr.dtype, jnp.floating):
-            raise ValueError(f"{name}: a mixture needs a floating dtype (float32 or float64), got {arr.dtype}")
+            raise ValueError(
+                f"{name}: a mixture needs a floating dtype (float32 or float64), got {arr.dtype}"
+            )
     if w.ndim != 1:
         raise ValueError(f"weights: expected shape (K,), got {w.shape} (batch with vmap, not inside)")
     K = w.shape[0]
@@ -277,9 +277,7 @@ def check(gm: GaussianMixture) -> GaussianMixture:
     pad_idx = np.flatnonzero(~mask)
     for k in pad_idx:
         if w[k] != 0 or np.any(m[k] != 0) or np.any(P[k] != np.eye(d)):
-            raise ValueError(
-                f"mask: padded slot {int(k)} must hold weight 0, mean 0 and identity covariance"
-            )
+            raise ValueError(f"mask: padded slot {int(k)} must hold weight 0, mean 0 and identity covariance")
     return gm
 
 
@@ -319,8 +317,11 @@ def check_points(gm: GaussianMixture, x: ArrayLike, name: str = "x") -> Array:
     x = jnp.asarray(x)
     d = gm.dim
     if x.ndim not in (1, 2) or x.shape[-1] != d:
-        hint = f"; for {x.shape[0]} points of a 1-D mixture pass shape ({x.shape[0]}, 1)" if (
-            d == 1 and x.ndim == 1) else ""
+        hint = (
+            f"; for {x.shape[0]} points of a 1-D mixture pass shape ({x.shape[0]}, 1)"
+            if (d == 1 and x.ndim == 1)
+            else ""
+        )
         raise ValueError(
             f"{name}: expected one point ({d},) or points (n, {d}) of the {d}-D mixture, got shape "
             f"{x.shape}{hint}"
@@ -453,7 +454,9 @@ def marginal(gm: GaussianMixture, dims: Sequence[int]) -> GaussianMixture:
     if np.any((idx < -d) | (idx >= d)):
         raise ValueError(f"dims: {list(idx.tolist())} out of range for a {d}-D mixture (valid: 0..{d - 1})")
     if np.unique(idx % d).size != idx.size:
-        raise ValueError(f"dims: repeated dimension in {list(idx.tolist())} (the covariance would be singular)")
+        raise ValueError(
+            f"dims: repeated dimension in {list(idx.tolist())} (the covariance would be singular)"
+        )
     sel = jnp.asarray(idx % d)
     return GaussianMixture(gm.weights, gm.means[:, sel], gm.covs[:, sel][:, :, sel], gm.mask)
 

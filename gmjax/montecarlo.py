@@ -183,8 +183,9 @@ def filter_run(filter: Filter, scenario: Scenario, key: PRNGKey, params: Any = N
     return FilteredRun(truths, infos.mean, infos.cov, infos, pos, _any_flag(infos.flags))
 
 
-def score_run(filter: Filter, scenario: Scenario, key: PRNGKey, *, params: Any = None,
-              keep_trajectories: bool = False) -> RunScores:
+def score_run(
+    filter: Filter, scenario: Scenario, key: PRNGKey, *, params: Any = None, keep_trajectories: bool = False
+) -> RunScores:
     """Simulate one run of ``scenario``, filter it and score every step (traceable, differentiable)."""
     return score_filtered(filter_run(filter, scenario, key, params), keep_trajectories=keep_trajectories)
 
@@ -214,8 +215,15 @@ def score_filtered(r: FilteredRun, *, keep_trajectories: bool = False) -> RunSco
 # ----------------------------------------------------------------------------- differentiable studies
 
 
-def study_scores(filter: Filter, scenario: Scenario, n_runs: int, key: PRNGKey, params: Any = None, *,
-                 runs: range | None = None) -> RunScores:
+def study_scores(
+    filter: Filter,
+    scenario: Scenario,
+    n_runs: int,
+    key: PRNGKey,
+    params: Any = None,
+    *,
+    runs: range | None = None,
+) -> RunScores:
     """Simulate, filter and score ``n_runs`` runs in one ``vmap`` (traceable and differentiable).
 
     Run ``i`` uses :func:`run_key` ``(key, i)`` exactly as :func:`monte_carlo` does, so the same key gives
@@ -239,8 +247,14 @@ def study_scores(filter: Filter, scenario: Scenario, n_runs: int, key: PRNGKey, 
     return jax.vmap(lambda k: score_run(filter, scenario, k, params=params))(keys)
 
 
-def study_loss(filter: Filter, scenario: Scenario, n_runs: int, key: PRNGKey,
-               loss: Callable[[RunScores], Array] | None = None, params: Any = None) -> Array:
+def study_loss(
+    filter: Filter,
+    scenario: Scenario,
+    n_runs: int,
+    key: PRNGKey,
+    loss: Callable[[RunScores], Array] | None = None,
+    params: Any = None,
+) -> Array:
     """A differentiable Monte Carlo score of ``filter`` on ``scenario``: ``loss(study_scores(...))``.
 
     ``jax.grad(lambda p: study_loss(filt, sc, 16, key, armse_loss(), params=p))(filt.params)`` is the
@@ -331,8 +345,15 @@ class StudyMoments(NamedTuple):
     def empty(n_steps: int) -> StudyMoments:
         S, T = len(SCORE_NAMES), n_steps
         z = np.zeros
-        return StudyMoments(np.zeros((), np.int64), z((S, T)), z((S, T)), z((T, T)), z((T, T)),
-                            np.zeros((len(HIST_NAMES), _HIST_SIZE), np.int64), np.zeros((), np.int64))
+        return StudyMoments(
+            np.zeros((), np.int64),
+            z((S, T)),
+            z((S, T)),
+            z((T, T)),
+            z((T, T)),
+            np.zeros((len(HIST_NAMES), _HIST_SIZE), np.int64),
+            np.zeros((), np.int64),
+        )
 
 
 def _chan_merge(a: StudyMoments, b: StudyMoments) -> StudyMoments:
@@ -381,8 +402,15 @@ def _moments(scores: RunScores, mask, xp) -> StudyMoments:
         dev = xp.where(m, x - mean, 0)
         return mean, dev
 
-    cols = [scores.sq_error, scores.position_sq_error, scores.nees, scores.n_components, scores.ise,
-            scores.cost, scores.flags]
+    cols = [
+        scores.sq_error,
+        scores.position_sq_error,
+        scores.nees,
+        scores.n_components,
+        scores.ise,
+        scores.cost,
+        scores.flags,
+    ]
     out = [stats(c) for c in cols]
     means = xp.stack([o[0] for o in out])
     m2 = xp.stack([(o[1] ** 2).sum(0) for o in out])
@@ -402,14 +430,22 @@ def _moments(scores: RunScores, mask, xp) -> StudyMoments:
         gram = lambda a: a.T @ a  # noqa: E731
     else:
         gram = lambda a: jnp.matmul(a.T, a, precision=jax.lax.Precision.HIGHEST)  # noqa: E731
-    return StudyMoments(xp.sum(mask.astype(xp.int32)), means, m2, gram(dev_sq), gram(dev_psq),
-                        xp.stack(hists), flagged)
+    return StudyMoments(
+        xp.sum(mask.astype(xp.int32)), means, m2, gram(dev_sq), gram(dev_psq), xp.stack(hists), flagged
+    )
 
 
 def _to_host(m: StudyMoments) -> StudyMoments:
     f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
-    return StudyMoments(np.asarray(m.n, np.int64), f64(m.mean), f64(m.m2), f64(m.sq_cross), f64(m.position_sq_cross),
-                        np.asarray(m.hist, np.int64), np.asarray(m.n_flagged_runs, np.int64))
+    return StudyMoments(
+        np.asarray(m.n, np.int64),
+        f64(m.mean),
+        f64(m.m2),
+        f64(m.sq_cross),
+        f64(m.position_sq_cross),
+        np.asarray(m.hist, np.int64),
+        np.asarray(m.n_flagged_runs, np.int64),
+    )
 
 
 def _hist_median(counts: np.ndarray) -> float:
@@ -514,9 +550,23 @@ class MonteCarloResult(NamedTuple):
     def to_json(self) -> dict:
         """JSON-ready summary (no per-run data; NaN / inf as ``None``)."""
         out = {}
-        for name in ("armse", "armse_stderr", "position_armse", "position_armse_stderr", "anees",
-                     "median_nees", "cep", "mean_cost", "mean_ise", "flag_rate", "n_runs_flagged", "n_runs",
-                     "compile_s", "run_s", "resumed_runs"):
+        for name in (
+            "armse",
+            "armse_stderr",
+            "position_armse",
+            "position_armse_stderr",
+            "anees",
+            "median_nees",
+            "cep",
+            "mean_cost",
+            "mean_ise",
+            "flag_rate",
+            "n_runs_flagged",
+            "n_runs",
+            "compile_s",
+            "run_s",
+            "resumed_runs",
+        ):
             out[name] = getattr(self, name)
         for name in ("rmse", "position_rmse", "nees", "n_components"):
             out[name] = np.asarray(getattr(self, name)).tolist()
@@ -528,10 +578,16 @@ class MonteCarloResult(NamedTuple):
         """Write the result to ``path`` (``.npz``: accumulators, kept runs, a JSON header; no pickle)."""
         arrays = {f"moments.{k}": np.asarray(v) for k, v in self.moments._asdict().items()}
         if self.scores is not None:
-            arrays.update({f"scores.{k}": np.asarray(v) for k, v in self.scores._asdict().items()
-                           if v is not None})
-        meta = {"runs": list(self.runs), "config": self.config, "compile_s": self.compile_s,
-                "run_s": self.run_s, "resumed_runs": self.resumed_runs}
+            arrays.update(
+                {f"scores.{k}": np.asarray(v) for k, v in self.scores._asdict().items() if v is not None}
+            )
+        meta = {
+            "runs": list(self.runs),
+            "config": self.config,
+            "compile_s": self.compile_s,
+            "run_s": self.run_s,
+            "resumed_runs": self.resumed_runs,
+        }
         arrays["meta"] = np.asarray(json.dumps(json_safe(meta)))
         _atomic_savez(path, arrays)
 
@@ -546,11 +602,17 @@ def load_result(path: str | os.PathLike) -> MonteCarloResult:
     with np.load(path, allow_pickle=False) as f:
         meta = json.loads(str(f["meta"]))
         moments = StudyMoments(**{k: f[f"moments.{k}"] for k in StudyMoments._fields})
-        kept = {k[len("scores."):]: f[k] for k in f.files if k.startswith("scores.")}
+        kept = {k[len("scores.") :]: f[k] for k in f.files if k.startswith("scores.")}
     scores = RunScores(**kept) if kept else None
-    return _finalize(moments, runs=tuple(meta["runs"]), scores=scores, config=meta["config"],
-                     compile_s=meta["compile_s"] or 0.0, run_s=meta["run_s"] or 0.0,
-                     resumed_runs=meta["resumed_runs"])
+    return _finalize(
+        moments,
+        runs=tuple(meta["runs"]),
+        scores=scores,
+        config=meta["config"],
+        compile_s=meta["compile_s"] or 0.0,
+        run_s=meta["run_s"] or 0.0,
+        resumed_runs=meta["resumed_runs"],
+    )
 
 
 def json_safe(obj: Any) -> Any:
@@ -570,9 +632,16 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
-def _finalize(m: StudyMoments, *, runs: tuple[int, int], scores: RunScores | None = None,
-              config: dict | None = None, compile_s: float = 0.0, run_s: float = 0.0,
-              resumed_runs: int = 0) -> MonteCarloResult:
+def _finalize(
+    m: StudyMoments,
+    *,
+    runs: tuple[int, int],
+    scores: RunScores | None = None,
+    config: dict | None = None,
+    compile_s: float = 0.0,
+    run_s: float = 0.0,
+    resumed_runs: int = 0,
+) -> MonteCarloResult:
     n = int(m.n)
     i = SCORE_NAMES.index
     rmse, armse, se = _armse_and_stderr(m.mean[i("sq_error")], m.sq_cross, n)
@@ -583,17 +652,35 @@ def _finalize(m: StudyMoments, *, runs: tuple[int, int], scores: RunScores | Non
         return float(row.mean()) if row.size else float("nan")
 
     return MonteCarloResult(
-        rmse=rmse, position_rmse=prmse, armse=armse, armse_stderr=se, position_armse=parmse,
-        position_armse_stderr=pse, nees=m.mean[i("nees")].copy(), anees=avg("nees"),
-        median_nees=_hist_median(m.hist[0]), cep=_hist_median(m.hist[1]), mean_cost=avg("cost"),
-        mean_ise=avg("ise"), n_components=m.mean[i("n_components")].copy(), flag_rate=avg("flags"),
-        n_runs_flagged=int(m.n_flagged_runs), n_runs=n, runs=(int(runs[0]), int(runs[1])), moments=m,
-        scores=scores, config=config, compile_s=float(compile_s), run_s=float(run_s),
-        resumed_runs=int(resumed_runs))
+        rmse=rmse,
+        position_rmse=prmse,
+        armse=armse,
+        armse_stderr=se,
+        position_armse=parmse,
+        position_armse_stderr=pse,
+        nees=m.mean[i("nees")].copy(),
+        anees=avg("nees"),
+        median_nees=_hist_median(m.hist[0]),
+        cep=_hist_median(m.hist[1]),
+        mean_cost=avg("cost"),
+        mean_ise=avg("ise"),
+        n_components=m.mean[i("n_components")].copy(),
+        flag_rate=avg("flags"),
+        n_runs_flagged=int(m.n_flagged_runs),
+        n_runs=n,
+        runs=(int(runs[0]), int(runs[1])),
+        moments=m,
+        scores=scores,
+        config=config,
+        compile_s=float(compile_s),
+        run_s=float(run_s),
+        resumed_runs=int(resumed_runs),
+    )
 
 
-def summarize(scores: RunScores, *, n_runs: int | None = None, compile_s: float = 0.0,
-              run_s: float = 0.0) -> MonteCarloResult:
+def summarize(
+    scores: RunScores, *, n_runs: int | None = None, compile_s: float = 0.0, run_s: float = 0.0
+) -> MonteCarloResult:
     """Aggregate per-run scores ``(N, T)`` (e.g. of :func:`study_scores`) into a :class:`MonteCarloResult`."""
     sq = np.asarray(scores.sq_error, np.float64)
     N, T = sq.shape
@@ -603,8 +690,15 @@ def summarize(scores: RunScores, *, n_runs: int | None = None, compile_s: float 
     def col(x: Any, default: float = 0.0) -> Any:  # host (N, T) float64 columns
         return np.full((N, T), default) if x is None else np.asarray(x, np.float64)
 
-    s = RunScores(col(sq), col(scores.position_sq_error), col(scores.nees), col(scores.cost),
-                  cast(Any, np.asarray(scores.flags, bool)), col(scores.n_components, 1.0), col(scores.ise))
+    s = RunScores(
+        col(sq),
+        col(scores.position_sq_error),
+        col(scores.nees),
+        col(scores.cost),
+        cast(Any, np.asarray(scores.flags, bool)),
+        col(scores.n_components, 1.0),
+        col(scores.ise),
+    )
     moments = _to_host(_moments(s, np.ones(N, bool), np))
     return _finalize(moments, runs=(0, N), scores=scores, compile_s=compile_s, run_s=run_s)
 
@@ -630,8 +724,9 @@ def merge(results: Sequence[MonteCarloResult]) -> MonteCarloResult:
         cfg = r.config or {}
         for field in ("key", "filter", "scenario", "dtype", "n_runs"):
             if ref.get(field) != cfg.get(field):
-                raise ValueError(f"results: different studies ({field} differs: {ref.get(field)!r} vs "
-                                 f"{cfg.get(field)!r})")
+                raise ValueError(
+                    f"results: different studies ({field} differs: {ref.get(field)!r} vs {cfg.get(field)!r})"
+                )
     m = results[0].moments
     for r in results[1:]:
         m = _chan_merge(m, r.moments)
@@ -639,10 +734,17 @@ def merge(results: Sequence[MonteCarloResult]) -> MonteCarloResult:
     scores = None
     if kept:
         scores = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *kept)
-    config = dict(ref, runs=[results[0].runs[0], results[-1].runs[1]],
-                  merged_from=[list(r.runs) for r in results])
-    return _finalize(m, runs=(results[0].runs[0], results[-1].runs[1]), scores=scores, config=config,
-                     compile_s=sum(r.compile_s for r in results), run_s=sum(r.run_s for r in results))
+    config = dict(
+        ref, runs=[results[0].runs[0], results[-1].runs[1]], merged_from=[list(r.runs) for r in results]
+    )
+    return _finalize(
+        m,
+        runs=(results[0].runs[0], results[-1].runs[1]),
+        scores=scores,
+        config=config,
+        compile_s=sum(r.compile_s for r in results),
+        run_s=sum(r.run_s for r in results),
+    )
 
 
 # ----------------------------------------------------------------------------- configuration & checkpoints
@@ -660,9 +762,19 @@ def _digest(tree: Any) -> str:
     return h.hexdigest()
 
 
-def _study_config(filter: Filter, scenario: Scenario, params: Any, key: PRNGKey, n_runs: int,
-                  runs: range, chunk: int, devices: Sequence[Any], keep_runs: int, keep_traj: bool,
-                  dtype: Any) -> dict:
+def _study_config(
+    filter: Filter,
+    scenario: Scenario,
+    params: Any,
+    key: PRNGKey,
+    n_runs: int,
+    runs: range,
+    chunk: int,
+    devices: Sequence[Any],
+    keep_runs: int,
+    keep_traj: bool,
+    dtype: Any,
+) -> dict:
     import gmjax
 
     key_data = np.asarray(jax.random.key_data(key)).ravel().tolist()
@@ -674,14 +786,16 @@ def _study_config(filter: Filter, scenario: Scenario, params: Any, key: PRNGKey,
         "n_runs": n_runs,
         "runs": [runs.start, runs.stop],
         "chunk_size": chunk,
-        "devices": {"count": len(devices), "platform": devices[0].platform,
-                    "processes": jax.process_count()},
+        "devices": {"count": len(devices), "platform": devices[0].platform, "processes": jax.process_count()},
         "keep_runs": keep_runs,
         "keep_trajectories": keep_traj,
-        "scenario": {"name": scenario.name, "n_steps": scenario.n_steps,
-                     "position_dims": list(scenario.position_dims or []),
-                     "model_params": _digest(scenario.model.params),
-                     "description": hashlib.sha256(scenario.description.encode()).hexdigest()[:16]},
+        "scenario": {
+            "name": scenario.name,
+            "n_steps": scenario.n_steps,
+            "position_dims": list(scenario.position_dims or []),
+            "model_params": _digest(scenario.model.params),
+            "description": hashlib.sha256(scenario.description.encode()).hexdigest()[:16],
+        },
         "filter": {"params": _digest(filter.params if params is None else params)},
     }
 
@@ -722,10 +836,12 @@ def _read_checkpoint(path, config: dict) -> tuple[int, StudyMoments, RunScores |
         if str(f["config_hash"]) != _config_hash(config):
             old = json.loads(str(f["config"]))
             diff = sorted(k for k in set(old) | set(config) if old.get(k) != config.get(k))
-            raise ValueError(f"checkpoint: {os.fspath(path)!r} was written by another study configuration "
-                             f"(differs in: {', '.join(diff)}); delete it or pass another path")
+            raise ValueError(
+                f"checkpoint: {os.fspath(path)!r} was written by another study configuration "
+                f"(differs in: {', '.join(diff)}); delete it or pass another path"
+            )
         moments = StudyMoments(**{k: f[f"moments.{k}"] for k in StudyMoments._fields})
-        kept = {k[len("scores."):]: f[k] for k in f.files if k.startswith("scores.")}
+        kept = {k[len("scores.") :]: f[k] for k in f.files if k.startswith("scores.")}
         return int(f["next_run"]), moments, (RunScores(**kept) if kept else None)
 
 
@@ -736,28 +852,44 @@ def _validate(filter: Filter, scenario: Scenario, params: Any) -> Any:
     """The study's dtype; refuse a filter whose floating params differ from the scenario's dtype."""
     dtype = np.dtype(scenario.model.prior.means.dtype)
     p = filter.params if params is None else params
-    others = {np.dtype(leaf.dtype) for leaf in jax.tree_util.tree_leaves(p)
-              if isinstance(leaf, (np.ndarray, jax.Array)) and jnp.issubdtype(leaf.dtype, jnp.floating)}
+    others = {
+        np.dtype(leaf.dtype)
+        for leaf in jax.tree_util.tree_leaves(p)
+        if isinstance(leaf, (np.ndarray, jax.Array)) and jnp.issubdtype(leaf.dtype, jnp.floating)
+    }
     others.discard(dtype)
     if others:
-        raise ValueError(f"filter: its params hold {sorted(map(str, others))} arrays but the scenario "
-                         f"{scenario.name!r} is {dtype}; build both with the same dtype")
+        raise ValueError(
+            f"filter: its params hold {sorted(map(str, others))} arrays but the scenario "
+            f"{scenario.name!r} is {dtype}; build both with the same dtype"
+        )
     if dtype == np.float64 and not jax.config.read("jax_enable_x64"):
         raise ValueError("scenario: float64 arrays but jax_enable_x64 is off")
     try:
         xs, zs, _ = jax.eval_shape(lambda k: simulate(scenario, k), jax.random.key(0))
     except TypeError as e:
         lines = [ln for ln in str(e).splitlines() if "has type" in ln] or [str(e).strip()]
-        raise ValueError(f"scenario: {scenario.name!r} ({dtype}) cannot be simulated: its samplers or "
-                         f"dynamics return another dtype ({lines[0].strip()})") from None
+        raise ValueError(
+            f"scenario: {scenario.name!r} ({dtype}) cannot be simulated: its samplers or "
+            f"dynamics return another dtype ({lines[0].strip()})"
+        ) from None
     if xs.dtype != dtype or zs.dtype != dtype:
-        raise ValueError(f"scenario: {scenario.name!r} is {dtype} but simulates {xs.dtype} states and "
-                         f"{zs.dtype} measurements")
+        raise ValueError(
+            f"scenario: {scenario.name!r} is {dtype} but simulates {xs.dtype} states and "
+            f"{zs.dtype} measurements"
+        )
     return dtype
 
 
-def _chunk_program(filter: Filter, scenario: Scenario, params: Any, chunk: int, keep: bool,
-                   keep_traj: bool, mesh: jax.sharding.Mesh):
+def _chunk_program(
+    filter: Filter,
+    scenario: Scenario,
+    params: Any,
+    chunk: int,
+    keep: bool,
+    keep_traj: bool,
+    mesh: jax.sharding.Mesh,
+):
     """jit of ``(key_data, start, n_valid) -> (StudyMoments, RunScores | None)`` for ``chunk`` runs."""
     P = jax.sharding.PartitionSpec
     runs_sharding = jax.sharding.NamedSharding(mesh, P("runs"))
@@ -767,8 +899,9 @@ def _chunk_program(filter: Filter, scenario: Scenario, params: Any, chunk: int, 
         offsets = jnp.arange(chunk, dtype=jnp.uint32)
         idx = jax.lax.with_sharding_constraint(start + offsets, runs_sharding)
         keys = jax.vmap(run_key, (None, 0))(key, idx)
-        scores = jax.vmap(lambda k: score_run(filter, scenario, k, params=params,
-                                              keep_trajectories=keep_traj))(keys)
+        scores = jax.vmap(
+            lambda k: score_run(filter, scenario, k, params=params, keep_trajectories=keep_traj)
+        )(keys)
         mask = offsets < n_valid
         moments = _moments(scores, mask, jnp)
         return moments, (scores if keep else None)
@@ -843,8 +976,9 @@ def monte_carlo(
         raise ValueError(f"chunk_size: must be a positive int or None, got {chunk_size!r}")
     runs = range(n_runs) if runs is None else runs
     if not isinstance(runs, range) or runs.step != 1 or not 0 <= runs.start < runs.stop <= n_runs:
-        raise ValueError(f"runs: expected a non-empty range(a, b) with 0 <= a < b <= n_runs = {n_runs}, "
-                         f"got {runs!r}")
+        raise ValueError(
+            f"runs: expected a non-empty range(a, b) with 0 <= a < b <= n_runs = {n_runs}, got {runs!r}"
+        )
     if scenario.n_steps < 1:
         raise ValueError(f"scenario: n_steps must be >= 1 to score a study, got {scenario.n_steps}")
     if keep_runs is None:
@@ -861,8 +995,9 @@ def monte_carlo(
     n_dev = len(devices)
     chunk = min(1024, max(1, math.ceil(len(runs) / 10))) if chunk_size is None else int(chunk_size)
     chunk = n_dev * math.ceil(chunk / n_dev)  # every device gets the same share
-    config = _study_config(filter, scenario, params, key, n_runs, runs, chunk, devices, keep_runs,
-                           keep_trajectories, dtype)
+    config = _study_config(
+        filter, scenario, params, key, n_runs, runs, chunk, devices, keep_runs, keep_trajectories, dtype
+    )
 
     moments = StudyMoments.empty(scenario.n_steps)
     kept: list[RunScores] = []
@@ -910,5 +1045,12 @@ def monte_carlo(
     scores = None
     if keep_runs:
         scores = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *kept) if len(kept) > 1 else kept[0]
-    return _finalize(moments, runs=(runs.start, runs.stop), scores=scores, config=config, compile_s=compile_s,
-                     run_s=run_s, resumed_runs=resumed)
+    return _finalize(
+        moments,
+        runs=(runs.start, runs.stop),
+        scores=scores,
+        config=config,
+        compile_s=compile_s,
+        run_s=run_s,
+        resumed_runs=resumed,
+    )

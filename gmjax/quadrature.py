@@ -75,9 +75,7 @@ def _check_dim(d: int) -> int:
 
 def _as_rule(points: np.ndarray, wm: np.ndarray, wc: np.ndarray, dtype) -> SigmaPoints:
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
-    return SigmaPoints(
-        jnp.asarray(points, dtype), jnp.asarray(wm, dtype), jnp.asarray(wc, dtype)
-    )
+    return SigmaPoints(jnp.asarray(points, dtype), jnp.asarray(wm, dtype), jnp.asarray(wc, dtype))
 
 
 def cubature(d: int, *, dtype: DTypeLike | None = None) -> SigmaPoints:
@@ -268,9 +266,7 @@ def smolyak(d: int, level: int, growth: str = "linear", *, dtype: DTypeLike | No
     return _as_rule(pts, wts, wts, dtype)
 
 
-def transform(
-    rule: SigmaPoints, mean: ArrayLike, cov_or_chol: ArrayLike, *, is_chol: bool = False
-) -> Array:
+def transform(rule: SigmaPoints, mean: ArrayLike, cov_or_chol: ArrayLike, *, is_chol: bool = False) -> Array:
     """Map a rule for ``N(0, I)`` to ``N(mean, P)``: ``x_i = mean + L z_i`` (seed 002 eq 38).
 
     Args:
@@ -290,7 +286,14 @@ def transform(
     return mean + rule.points.astype(L.dtype) @ L.T
 
 
-def expectation(rule: SigmaPoints, fn: Callable[[Array], Array], mean: ArrayLike, cov_or_chol: ArrayLike, *, is_chol: bool = False) -> Array:
+def expectation(
+    rule: SigmaPoints,
+    fn: Callable[[Array], Array],
+    mean: ArrayLike,
+    cov_or_chol: ArrayLike,
+    *,
+    is_chol: bool = False,
+) -> Array:
     """``E[fn(x)]`` for ``x ~ N(mean, P)`` by the rule: ``sum_i wm_i fn(mean + L z_i)`` (eq 38).
 
     ``fn`` maps ``(d,)`` to any array; it is ``vmap``-ed over the points.

@@ -67,6 +67,7 @@ __all__ = [
     "split_gated",
 ]
 
+
 class SplitLibrary(NamedTuple):
     """A 1-D splitting library ``N(0, 1) ~= sum_i w_i N(mu_i, sigma^2)`` (seed 002 eq 12).
 
@@ -204,7 +205,7 @@ def _nnls_simplex(G: np.ndarray, b: np.ndarray, rho: float = 1e3) -> np.ndarray:
 
     lam, V = np.linalg.eigh(G)
     keep = lam > lam.max() * 1e-15
-    A = (np.sqrt(lam[keep])[:, None] * V[:, keep].T)
+    A = np.sqrt(lam[keep])[:, None] * V[:, keep].T
     c = (V[:, keep].T @ b) / np.sqrt(lam[keep])
     n = G.shape[0]
     A_aug = np.vstack([A, rho * np.ones((1, n))])
@@ -278,9 +279,7 @@ def principal_library(l: float = 0.5, w: float = 0.5) -> SplitLibrary:  # noqa: 
         raise ValueError(f"l: must satisfy 0 < l < 1, got {l}")
     if not (0.0 < float(w) < 1.0):
         raise ValueError(f"w: must satisfy 0 < w < 1, got {w}")
-    return _make_library(
-        np.array([w, 1.0 - w]), np.array([l, -l]), math.sqrt(1.0 - float(l) ** 2)
-    )
+    return _make_library(np.array([w, 1.0 - w]), np.array([l, -l]), math.sqrt(1.0 - float(l) ** 2))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -358,9 +357,7 @@ def split_gaussian(
     mean = jnp.asarray(mean)
     cov = jnp.asarray(cov, mean.dtype)
     spec, u = _direction_spec(direction, mean.shape[-1])
-    one = GaussianMixture(
-        jnp.asarray(weight, mean.dtype)[None], mean[None], cov[None], jnp.ones(1, bool)
-    )
+    one = GaussianMixture(jnp.asarray(weight, mean.dtype)[None], mean[None], cov[None], jnp.ones(1, bool))
     return _split_mixture_jit(one, library, u, spec)
 
 
@@ -394,9 +391,7 @@ def _split_mixture_jit(gm: GaussianMixture, library: SplitLibrary, u, spec) -> G
     direction = _resolve(spec, u)
     # Padded slots: replace the (degenerate, identity) covariance by diag(1..d) before eigh so that
     # gradients stay finite; their children are sanitised afterwards.
-    safe_cov = jnp.where(
-        gm.mask[:, None, None], gm.covs, jnp.diag(jnp.arange(1, d + 1, dtype=gm.covs.dtype))
-    )
+    safe_cov = jnp.where(gm.mask[:, None, None], gm.covs, jnp.diag(jnp.arange(1, d + 1, dtype=gm.covs.dtype)))
     w, m, P = jax.vmap(lambda a, b, c: _split_one(a, b, c, library, direction))(
         gm.weights, gm.means, safe_cov
     )
@@ -460,9 +455,7 @@ def split_principal(
     lib = principal_library(l, w)
     mean = jnp.asarray(mean)
     cov = jnp.asarray(cov, mean.dtype)
-    gm = GaussianMixture(
-        jnp.asarray(weight, mean.dtype)[None], mean[None], cov[None], jnp.ones(1, bool)
-    )
+    gm = GaussianMixture(jnp.asarray(weight, mean.dtype)[None], mean[None], cov[None], jnp.ones(1, bool))
     return split_repeated(gm, lib, [None] * int(n_split))
 
 
@@ -542,7 +535,6 @@ def _refine_jit(gm, sel_in, library, u, *, spec, capacity):
         overflow=jnp.any(sel & ~allowed),
     )
     return sanitize(out), info
-
 
 
 # ----------------------------------------------------------------------------------------------

@@ -61,14 +61,17 @@ def _seed000_gsfs(n_u: int, dims: tuple[int, ...] | None = None) -> dict[str, Ca
     return {
         "NL-GSF": lambda sc: build_gsf(sc.model, "ekf", PruneTop(num_out=n_u), capacity=n_u),
         "PCM-GSF": lambda sc: build_gsf(
-            sc.model, "ekf", PCM(max_components=n_u, capacity=n_u, dims=dims), capacity=n_u),
+            sc.model, "ekf", PCM(max_components=n_u, capacity=n_u, dims=dims), capacity=n_u
+        ),
         "R-GSF": lambda sc: build_gsf(sc.model, "ekf", Runnalls(num_out=n_u), capacity=n_u),
     }
 
 
 def _true_process_noise_sampler(sc: Scenario):
     """The scenario's true process-noise simulator as a particle-filter sampler ``(key, (N,)) -> (N, d)``."""
-    return lambda key, shape: jax.vmap(lambda k: sc.sample_process_noise(k, 0))(jax.random.split(key, shape[0]))
+    return lambda key, shape: jax.vmap(lambda k: sc.sample_process_noise(k, 0))(
+        jax.random.split(key, shape[0])
+    )
 
 
 def _seed000_table7() -> Study:
@@ -156,11 +159,20 @@ _SEED001_NOTES = (
 
 _SEED001_TABLES: dict[str, tuple[str, str, Callable[..., Scenario], tuple[float, ...], str]] = {
     # study name -> (table, title, scenario factory, paper ARMSE per filter, extra note)
-    "gamma": ("seed001-table2", "Liu et al. 2014 Table 2: 1-D system with Gamma process noise (eqs 44-47)",
-              gamma_system, (33.25, 30.12, 23.22, 18.86, 18.05, 16.32),
-              "The paper's ARMSE is over k <= 30; ours over all 60 steps. "),
-    "bearings": ("seed001-table3", "Liu et al. 2014 Table 3: bearings-only tracking with two sensors (eqs 48-52)",
-                 bearings_only, (0.1532, 0.1530, 0.1203, 0.1056, 0.9234, 0.8021), ""),
+    "gamma": (
+        "seed001-table2",
+        "Liu et al. 2014 Table 2: 1-D system with Gamma process noise (eqs 44-47)",
+        gamma_system,
+        (33.25, 30.12, 23.22, 18.86, 18.05, 16.32),
+        "The paper's ARMSE is over k <= 30; ours over all 60 steps. ",
+    ),
+    "bearings": (
+        "seed001-table3",
+        "Liu et al. 2014 Table 3: bearings-only tracking with two sensors (eqs 48-52)",
+        bearings_only,
+        (0.1532, 0.1530, 0.1203, 0.1056, 0.9234, 0.8021),
+        "",
+    ),
 }
 
 
@@ -191,8 +203,13 @@ def _seed003(motion: str) -> Study:
     K = 8  # components kept per model filter (the paper's preset number is not given)
 
     def imm(reducer):
-        return lambda sc: build_imm_gsf(manoeuvring_target.imm_models(dtype=sc.model.prior.means.dtype),
-                                        manoeuvring_target.TRANSITION, local="ekf", reducer=reducer, capacity=K)
+        return lambda sc: build_imm_gsf(
+            manoeuvring_target.imm_models(dtype=sc.model.prior.means.dtype),
+            manoeuvring_target.TRANSITION,
+            local="ekf",
+            reducer=reducer,
+            capacity=K,
+        )
 
     paper = manoeuvring_target.PAPER[motion]
     return Study(
@@ -208,9 +225,11 @@ def _seed003(motion: str) -> Study:
         },
         paper={n: {"armse": paper["armse"][n], "cpu_s": paper["time_s"][n]} for n in paper["armse"]},
         paper_runs=100,
-        notes=(f"K = {K} components per model filter; GMRCM searches lambda in [0.5, 3] on an 11-point grid "
-               "(no Newton steps); scenario reading in gmjax.models.manoeuvring_target. The paper's times are MATLAB "
-               "seconds per run."),
+        notes=(
+            f"K = {K} components per model filter; GMRCM searches lambda in [0.5, 3] on an 11-point grid "
+            "(no Newton steps); scenario reading in gmjax.models.manoeuvring_target. The paper's times are MATLAB "
+            "seconds per run."
+        ),
         eise_filters=("GMRCM",),
     )
 
@@ -243,16 +262,24 @@ def run_study(
     results = {}
     for name in names:
         filt = study.filters[name](scenario)
-        results[name] = monte_carlo(filt, scenario, n_runs, key, chunk_size=chunk_size,
-                                    progress=f"{study.name} {name}" if progress else False)
+        results[name] = monte_carlo(
+            filt,
+            scenario,
+            n_runs,
+            key,
+            chunk_size=chunk_size,
+            progress=f"{study.name} {name}" if progress else False,
+        )
     return results
 
 
 def format_table(study: Study, results: dict[str, MonteCarloResult]) -> str:
     """A plain-text table of our numbers beside the paper's."""
     lines = [study.title, ""]
-    header = (f"{'filter':10s} {'ARMSE ± s.e.':>18s} {'paper':>8s} {'AEISE':>9s} {'paper':>7s} "
-              f"{'mean ISE':>9s} {'comps':>6s} {'ms/run':>8s} {'compile s':>9s} {'paper s':>8s}")
+    header = (
+        f"{'filter':10s} {'ARMSE ± s.e.':>18s} {'paper':>8s} {'AEISE':>9s} {'paper':>7s} "
+        f"{'mean ISE':>9s} {'comps':>6s} {'ms/run':>8s} {'compile s':>9s} {'paper s':>8s}"
+    )
     lines += [header, "-" * len(header)]
     for name, r in results.items():
         p = study.paper.get(name, {})
@@ -266,10 +293,13 @@ def format_table(study: Study, results: dict[str, MonteCarloResult]) -> str:
             f"{r.mean_ise:9.2e} {r.n_components.mean():6.1f} {per_run_ms:8.1f} {r.compile_s:9.1f} {paper_cpu:>8s}"
         )
     n = next(iter(results.values())).n_runs
-    lines += ["", "ARMSE: time-averaged RMSE of the position components (Xu et al., PCM, eq 44), with its "
-              "Monte Carlo standard error; ms/run: execution time per run, compilation apart.",
-              f"ours: {n} Monte Carlo runs; paper: {study.paper_runs or 'not stated'} runs.",
-              f"Notes: {study.notes}"]
+    lines += [
+        "",
+        "ARMSE: time-averaged RMSE of the position components (Xu et al., PCM, eq 44), with its "
+        "Monte Carlo standard error; ms/run: execution time per run, compilation apart.",
+        f"ours: {n} Monte Carlo runs; paper: {study.paper_runs or 'not stated'} runs.",
+        f"Notes: {study.notes}",
+    ]
     return "\n".join(lines)
 
 
@@ -283,13 +313,26 @@ def results_json(study: Study, results: dict[str, MonteCarloResult], *, seed: in
 
     first = next(iter(results.values()))
     cfg = first.config or {}
-    out: dict[str, Any] = {"study": study.name, "table": study.table, "title": study.title, "notes": study.notes,
-           "paper": study.paper, "paper_runs": study.paper_runs,
-           "config": {"seed": seed, "key": cfg.get("key"), "dtype": cfg.get("dtype"), "n_runs": first.n_runs,
-                      "chunk_size": cfg.get("chunk_size"), "devices": cfg.get("devices"),
-                      "filters": list(results), "gmjax_version": gmjax.__version__,
-                      "jax_version": jax.__version__},
-           "filters": {}}
+    out: dict[str, Any] = {
+        "study": study.name,
+        "table": study.table,
+        "title": study.title,
+        "notes": study.notes,
+        "paper": study.paper,
+        "paper_runs": study.paper_runs,
+        "config": {
+            "seed": seed,
+            "key": cfg.get("key"),
+            "dtype": cfg.get("dtype"),
+            "n_runs": first.n_runs,
+            "chunk_size": cfg.get("chunk_size"),
+            "devices": cfg.get("devices"),
+            "filters": list(results),
+            "gmjax_version": gmjax.__version__,
+            "jax_version": jax.__version__,
+        },
+        "filters": {},
+    }
     for name, r in results.items():
         out["filters"][name] = {
             **r.to_json(),
@@ -326,9 +369,18 @@ def plot_study(study: Study, results: dict[str, MonteCarloResult], path: Path) -
     return path
 
 
-def study_main(name: str, n_runs: int, *, seed: int = 0, filters: list[str] | None = None,
-               out: Path = Path("gmjax_out"), as_json: bool = False, chunk_size: int | None = None,
-               plot: bool = True, progress: bool | None = None) -> int:
+def study_main(
+    name: str,
+    n_runs: int,
+    *,
+    seed: int = 0,
+    filters: list[str] | None = None,
+    out: Path = Path("gmjax_out"),
+    as_json: bool = False,
+    chunk_size: int | None = None,
+    plot: bool = True,
+    progress: bool | None = None,
+) -> int:
     """Run a study, print its table (or JSON), write ``out/NAME.json`` and (with ``plot``) ``out/NAME.png``.
 
     The header names the dtype the study runs in (``jax_enable_x64`` decides; the ``gmjax`` command
@@ -347,11 +399,15 @@ def study_main(name: str, n_runs: int, *, seed: int = 0, filters: list[str] | No
     progress = (not as_json) if progress is None else progress
     dtype = "float64" if jax.config.read("jax_enable_x64") else "float32"
     if not as_json:
-        print(f"gmjax {gmjax.__version__} (JAX {jax.__version__}): study {name}, {n_runs} runs, seed {seed}, "
-              f"{dtype}, on {jax.devices()[0].platform.upper()}", flush=True)
+        print(
+            f"gmjax {gmjax.__version__} (JAX {jax.__version__}): study {name}, {n_runs} runs, seed {seed}, "
+            f"{dtype}, on {jax.devices()[0].platform.upper()}",
+            flush=True,
+        )
     t0 = time.perf_counter()
-    results = run_study(study, n_runs, jax.random.key(seed), filters=filters, chunk_size=chunk_size,
-                        progress=progress)
+    results = run_study(
+        study, n_runs, jax.random.key(seed), filters=filters, chunk_size=chunk_size, progress=progress
+    )
     summary = results_json(study, results, seed=seed)
     summary["wall_s"] = time.perf_counter() - t0
     text = json.dumps(summary, indent=2, allow_nan=False)

@@ -250,13 +250,16 @@ def tune(
         return study_loss(filter_factory(constrained(u_vec)), scenario, n_runs, k, loss_and_flag_rate)
 
     if ad == "forward":
+
         def value_and_grad(u_vec, k):
             def f(v):
                 val, flag = objective(v, k)
                 return val, (val, flag)
+
             g, (val, flag) = jax.jacfwd(f, has_aux=True)(u_vec)
             return val, flag, g
     else:
+
         def value_and_grad(u_vec, k):
             (val, flag), g = jax.value_and_grad(objective, has_aux=True)(u_vec, k)
             return val, flag, g
@@ -301,9 +304,12 @@ def tune(
         ps = " ".join(f"{n}={theta[n]:.4g}" for n in names)
         bar.update(1, postfix=f"loss {val:.5g}  {ps}{'' if ok else '  (non-finite: update skipped)'}")
     history = TuneHistory(
-        loss=np.asarray(losses), params={n: np.asarray(v) for n, v in p_hist.items()},
-        grads={n: np.asarray(v) for n, v in g_hist.items()}, ok=np.asarray(oks),
-        flag_rate=np.asarray(flags), step_s=np.asarray(times),
+        loss=np.asarray(losses),
+        params={n: np.asarray(v) for n, v in p_hist.items()},
+        grads={n: np.asarray(v) for n, v in g_hist.items()},
+        ok=np.asarray(oks),
+        flag_rate=np.asarray(flags),
+        step_s=np.asarray(times),
     )
     final = {n: float(v) for n, v in constrained(u).items()}
     return TuneResult(final, history, compile_s)

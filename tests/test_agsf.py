@@ -119,7 +119,9 @@ def test_don_closed_form_for_quadratic():
     P = np.array([[1.0, 0.5], [0.5, 2.0]])
     S = np.linalg.cholesky(P)
     want = np.mean([0.5 * (2 * 2 * S[0, t] * S[1, t]) ** 2 for t in range(2)])
-    np.testing.assert_allclose(float(degree_of_nonlinearity(h, jnp.zeros(2), jnp.asarray(P))), want, rtol=1e-13)
+    np.testing.assert_allclose(
+        float(degree_of_nonlinearity(h, jnp.zeros(2), jnp.asarray(P))), want, rtol=1e-13
+    )
 
 
 # --------------------------------------------------------------------------- the filter
@@ -128,11 +130,17 @@ def test_don_closed_form_for_quadratic():
 def _np_gamma_filter(cfg=agsf_np.Config()):  # noqa: B008 (never mutated)
     fnp = lambda x, t: 0.5 * x + np.sin(0.04 * np.pi * (t - 1))  # noqa: E731
     hnp = lambda x, t: 0.2 * x**2 if t <= 30 else 0.5 * x - 2.0  # noqa: E731
-    q = (np.array(GAMMA_PROCESS_NOISE[0]), np.array(GAMMA_PROCESS_NOISE[1])[:, None],
-         np.array(GAMMA_PROCESS_NOISE[2])[:, None, None])
+    q = (
+        np.array(GAMMA_PROCESS_NOISE[0]),
+        np.array(GAMMA_PROCESS_NOISE[1])[:, None],
+        np.array(GAMMA_PROCESS_NOISE[2])[:, None, None],
+    )
     r = (np.ones(1), np.zeros((1, 1)), np.full((1, 1, 1), 1e-5))
-    prior = (np.array(GAMMA_PRIOR[0]), np.array(GAMMA_PRIOR[1])[:, None],
-             np.array(GAMMA_PRIOR[2])[:, None, None])
+    prior = (
+        np.array(GAMMA_PRIOR[0]),
+        np.array(GAMMA_PRIOR[1])[:, None],
+        np.array(GAMMA_PRIOR[2])[:, None, None],
+    )
     return agsf_np.AGSSCKF(fnp, hnp, q, r, cfg), prior
 
 
@@ -173,8 +181,7 @@ def test_agsf_matches_numpy_reference(gamma_data, agsf_runs):
         means, covs, ref = agsf_np.run(filt, prior, np.asarray(zs[i]), np.asarray(ts))
         np.testing.assert_array_equal(np.asarray(infos.extra["n_split"][i]), [x["n_split"] for x in ref])
         np.testing.assert_array_equal(np.asarray(infos.n_components[i]), [x["n_components"] for x in ref])
-        np.testing.assert_array_equal(np.asarray(infos.extra["n_updated"][i]),
-                                      [x["n_updated"] for x in ref])
+        np.testing.assert_array_equal(np.asarray(infos.extra["n_updated"][i]), [x["n_updated"] for x in ref])
         np.testing.assert_array_equal(np.asarray(infos.flags.overflow[i]), [x["truncated"] for x in ref])
         np.testing.assert_allclose(np.asarray(infos.mean[i]), means, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(np.asarray(infos.cov[i]), covs, rtol=1e-7, atol=1e-12)
@@ -199,8 +206,10 @@ def test_vmap_equals_loop(gamma_data, agsf_runs, runner):
     f, (_, infos) = agsf_runs
     for i in range(zs.shape[0]):
         _, inf_i = runner(AGSFConfig(), zs[i])
-        for a, b in zip(jax.tree_util.tree_leaves(inf_i), jax.tree_util.tree_leaves(
-                jax.tree_util.tree_map(lambda x: x[i], infos))):
+        for a, b in zip(
+            jax.tree_util.tree_leaves(inf_i),
+            jax.tree_util.tree_leaves(jax.tree_util.tree_map(lambda x: x[i], infos)),
+        ):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-13)
 
 
@@ -397,8 +406,12 @@ def test_step6_history_gates_the_rules():
     _, _, info = red.reduce(gm, linear)
     assert int(info.n_out) == 1 and int(info.aux["n_merged"]) == 2
     # rule 1: both low now and low before; pruning drops what is below prune_threshold
-    light = GaussianMixture(jnp.array([0.99, 0.004, 0.00599, 5e-5]), jnp.array([[0.0], [5.0], [-5.0], [9.0]]),
-                            jnp.ones((4, 1, 1)), jnp.ones(4, bool))
+    light = GaussianMixture(
+        jnp.array([0.99, 0.004, 0.00599, 5e-5]),
+        jnp.array([[0.0], [5.0], [-5.0], [9.0]]),
+        jnp.ones((4, 1, 1)),
+        jnp.ones(4, bool),
+    )
     st = Step6Merge().init(4)._replace(ancestor_cost=jnp.full((4, 4), 10.0))
     out, _, info = Step6Merge().reduce(light, st)
     np.testing.assert_array_equal(np.asarray(info.labels), [0, 1, 1, -1])

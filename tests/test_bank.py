@@ -71,8 +71,17 @@ def test_each_method_matches_the_numpy_reference_on_model_3():
     q, r = model.process_noise, model.measurement_noise
     for method in bank.BANK_METHODS:
         _, infos = _runner(method)(q, r, run.zs, run.active)
-        ref = bank_filter_np(method, np.asarray(run.zs), F, H, _np_noise(q), _np_noise(r), PRIOR,
-                             active=np.asarray(run.active), G=G)
+        ref = bank_filter_np(
+            method,
+            np.asarray(run.zs),
+            F,
+            H,
+            _np_noise(q),
+            _np_noise(r),
+            PRIOR,
+            active=np.asarray(run.active),
+            G=G,
+        )
         np.testing.assert_allclose(np.asarray(infos.mean), ref, rtol=1e-9, atol=1e-9, err_msg=method)
         assert not bool(infos.flags.repaired.any() | infos.flags.degenerate.any()), method
 
@@ -87,20 +96,33 @@ def test_each_method_matches_the_numpy_reference_on_uwb(axis):
     for method in bank.BANK_METHODS:
         filt = bank.build_bank(model, method)  # noise_gain="auto" here
         _, infos = jax.jit(lambda zs, a: filters.run(filt, zs, _inputs(a)))(run.zs, run.active)
-        ref = bank_filter_np(method, np.asarray(run.zs), F, H, _np_noise(q), _np_noise(r), PRIOR,
-                             active=np.asarray(run.active), G=G)
+        ref = bank_filter_np(
+            method,
+            np.asarray(run.zs),
+            F,
+            H,
+            _np_noise(q),
+            _np_noise(r),
+            PRIOR,
+            active=np.asarray(run.active),
+            G=G,
+        )
         np.testing.assert_allclose(np.asarray(infos.mean), ref, rtol=1e-9, atol=1e-7, err_msg=method)
 
 
 def _one_component_check(q, r, zs, active, runner_for):
-    model = _model(uwb_velocity.ScalarGM((1.0,), (2.0,), (1.5,)), uwb_velocity.ScalarGM((1.0,), (-1.0,), (4.0,)))
+    model = _model(
+        uwb_velocity.ScalarGM((1.0,), (2.0,), (1.5,)), uwb_velocity.ScalarGM((1.0,), (-1.0,), (4.0,))
+    )
     kf_states, _ = jax.jit(lambda z: filters.run(filters.build_kf(model), z))(zs)
     for method in bank.BANK_METHODS:
         _, infos = runner_for(method)(q, r, zs, active)
-        np.testing.assert_allclose(np.asarray(infos.mean), np.asarray(kf_states.mean), rtol=1e-10, atol=1e-10,
-                                   err_msg=method)
-        np.testing.assert_allclose(np.asarray(infos.cov), np.asarray(kf_states.cov), rtol=1e-10, atol=1e-10,
-                                   err_msg=method)
+        np.testing.assert_allclose(
+            np.asarray(infos.mean), np.asarray(kf_states.mean), rtol=1e-10, atol=1e-10, err_msg=method
+        )
+        np.testing.assert_allclose(
+            np.asarray(infos.cov), np.asarray(kf_states.cov), rtol=1e-10, atol=1e-10, err_msg=method
+        )
 
 
 def test_one_component_noises_every_method_equals_the_kalman_filter():
@@ -117,8 +139,13 @@ def test_one_component_noises_unpadded_every_method_equals_the_kalman_filter():
     pn, mn = uwb_velocity.ScalarGM((1.0,), (2.0,), (1.5,)), uwb_velocity.ScalarGM((1.0,), (-1.0,), (4.0,))
     model = _model(pn, mn)
     run = _simulate(pn, mn, 4, 30)
-    _one_component_check(model.process_noise, model.measurement_noise, run.zs, jnp.zeros((30, 2), jnp.int32),
-                         functools.partial(_runner))
+    _one_component_check(
+        model.process_noise,
+        model.measurement_noise,
+        run.zs,
+        jnp.zeros((30, 2), jnp.int32),
+        functools.partial(_runner),
+    )
 
 
 def test_red_pkg_equals_red_gsfm_when_all_clusters_share_one_variance():
@@ -130,7 +157,9 @@ def test_red_pkg_equals_red_gsfm_when_all_clusters_share_one_variance():
     _, a = _runner("red-gsfm")(q, r, run.zs, run.active)
     _, b = _runner("red-pkg")(q, r, run.zs, run.active)
     np.testing.assert_array_equal(np.asarray(a.extra["active"]), np.asarray(b.extra["active"]))
-    np.testing.assert_allclose(np.asarray(a.extra["initial"]), np.asarray(b.extra["initial"]), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(a.extra["initial"]), np.asarray(b.extra["initial"]), rtol=1e-9, atol=1e-9
+    )
     np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), rtol=1e-9, atol=1e-9)
 
 
@@ -191,11 +220,18 @@ def test_matched_rmse_is_at_most_gsf_merge_over_a_sweep():
         q, r = model.process_noise, model.measurement_noise
         mse = {}
         for method in ("matched", "gsf-merge"):
-            mse[method] = np.array([
-                np.mean(np.asarray(_runner(method)(q, r, runs.zs[n], runs.active[n])[1].mean[:, 0]
-                                   - runs.xs[n, 1:, 0]) ** 2)
-                for n in range(n_runs)
-            ])
+            mse[method] = np.array(
+                [
+                    np.mean(
+                        np.asarray(
+                            _runner(method)(q, r, runs.zs[n], runs.active[n])[1].mean[:, 0]
+                            - runs.xs[n, 1:, 0]
+                        )
+                        ** 2
+                    )
+                    for n in range(n_runs)
+                ]
+            )
         d = mse["matched"] - mse["gsf-merge"]
         se = d.std(ddof=1) / np.sqrt(n_runs)
         assert d.mean() <= 3 * se, (c, d.mean(), se)
@@ -217,16 +253,21 @@ def test_sweep_vmap_over_points_and_runs_equals_a_loop():
     cs = jnp.asarray([0.2, 1.0])
     keys = jax.random.split(jax.random.key(10), 3)
     method = "red-gsfr"
-    errors = jax.jit(lambda cs, keys: bank.sweep_errors(method, make_model, simulate, cs, keys, noise_gain=G64))(
-        cs, keys)
+    errors = jax.jit(
+        lambda cs, keys: bank.sweep_errors(method, make_model, simulate, cs, keys, noise_gain=G64)
+    )(cs, keys)
     assert errors.shape == (2, 3, T, 1)
     for p in range(2):
         model = make_model(cs[p])
         for n in range(3):
             run = simulate(cs[p], keys[n])
             _, infos = _runner(method)(model.process_noise, model.measurement_noise, run.zs, run.active)
-            np.testing.assert_allclose(np.asarray(errors[p, n, :, 0]), np.asarray(infos.mean[:, 0] - run.xs[1:, 0]),
-                                       rtol=1e-10, atol=1e-10)
+            np.testing.assert_allclose(
+                np.asarray(errors[p, n, :, 0]),
+                np.asarray(infos.mean[:, 0] - run.xs[1:, 0]),
+                rtol=1e-10,
+                atol=1e-10,
+            )
 
 
 @pytest.mark.parametrize("method", ["red-gsfm", pytest.param("gsf-merge", marks=pytest.mark.slow)])
@@ -236,8 +277,9 @@ def test_float32_runs_and_agrees_with_float64(method):
     m64 = _model(noise, noise)
     m32 = _model(noise, noise, jnp.float32)
     _, i64 = _runner(method)(m64.process_noise, m64.measurement_noise, run.zs, run.active)
-    _, i32 = _runner(method, jnp.float32)(m32.process_noise, m32.measurement_noise,
-                                          run.zs.astype(jnp.float32), run.active)
+    _, i32 = _runner(method, jnp.float32)(
+        m32.process_noise, m32.measurement_noise, run.zs.astype(jnp.float32), run.active
+    )
     assert i32.mean.dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(i32.mean))) and np.all(np.isfinite(np.asarray(i32.cov)))
     # same selections, estimates to float32 precision of the state's scale (~100)
@@ -250,10 +292,13 @@ def test_float32_runs_and_agrees_with_float64(method):
 
 def test_steady_state_gains_match_scipy_dare_and_the_riccati_fixed_point():
     g = np.array([DT, 1.0])
-    for Q, R in [(np.outer(g, g) + 0.01 * np.eye(2), np.eye(1)),
-                 (48.38 * np.outer(g, g) + 1e-9 * np.eye(2), 3611.99 * np.eye(1))]:
-        K, S = bank.steady_state_gains(jnp.asarray(F), jnp.asarray(H), jnp.asarray(Q), jnp.asarray(R),
-                                       jnp.asarray(PRIOR[1]))
+    for Q, R in [
+        (np.outer(g, g) + 0.01 * np.eye(2), np.eye(1)),
+        (48.38 * np.outer(g, g) + 1e-9 * np.eye(2), 3611.99 * np.eye(1)),
+    ]:
+        K, S = bank.steady_state_gains(
+            jnp.asarray(F), jnp.asarray(H), jnp.asarray(Q), jnp.asarray(R), jnp.asarray(PRIOR[1])
+        )
         P = _dare(F, H, Q, R)  # SciPy's DARE (first case) or the Riccati iteration to 1e-14 (second)
         S_ref = H @ P @ H.T + R
         np.testing.assert_allclose(np.asarray(S), S_ref, rtol=1e-8)
@@ -301,8 +346,14 @@ def test_bad_arguments_raise_clear_errors():
     with pytest.raises(ValueError, match="inputs.aux"):
         filters.run(filt, jnp.zeros((5, 1)), StepInputs(t=jnp.arange(1, 6), aux=jnp.zeros((4, 2), jnp.int32)))
     with pytest.raises(ValueError, match="noise_gain"):
-        jax.jit(lambda s: bank.build_bank(
-            _model(uwb_velocity.ScalarGM(jnp.ones(1), jnp.zeros(1), s * jnp.ones(1)), noise), "red-gsfm").params)(1.0)
+        jax.jit(
+            lambda s: (
+                bank.build_bank(
+                    _model(uwb_velocity.ScalarGM(jnp.ones(1), jnp.zeros(1), s * jnp.ones(1)), noise),
+                    "red-gsfm",
+                ).params
+            )
+        )(1.0)
 
 
 def test_auto_noise_gain_finds_the_noise_line():
@@ -359,12 +410,15 @@ def _perturbed_total(filt, zs, active, objective):
     return total
 
 
-@pytest.mark.parametrize("method,objective", [
-    ("gsf-merge", "loglik"),
-    ("red-gsfm", "loglik"),
-    ("matched", "loglik"),
-    ("red-ssg", "initial"),  # through the steady-state gains computed from params in init
-])
+@pytest.mark.parametrize(
+    "method,objective",
+    [
+        ("gsf-merge", "loglik"),
+        ("red-gsfm", "loglik"),
+        ("matched", "loglik"),
+        ("red-ssg", "initial"),  # through the steady-state gains computed from params in init
+    ],
+)
 def test_grad_wrt_a_process_noise_covariance_matches_central_differences(method, objective):
     noise = uwb_velocity.synthetic_noise(3, 0.6)
     model = _model(noise, noise)
@@ -386,10 +440,15 @@ def test_vmap_over_two_parameter_sets_equals_two_runs():
     filt = bank.build_bank(model, "red-gsfr", noise_gain=G)
     q = model.process_noise
     q2 = q._replace(covs=2.0 * q.covs)
-    both = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), filt.params,
-                                  filt.params._replace(model=filt.params.model._replace(process_noise=q2)))
+    both = jax.tree_util.tree_map(
+        lambda a, b: jnp.stack([a, b]),
+        filt.params,
+        filt.params._replace(model=filt.params.model._replace(process_noise=q2)),
+    )
     _, infos = jax.jit(jax.vmap(lambda p: filters.run(filt, run.zs, _inputs(run.active), params=p)))(both)
     for n, qq in enumerate((q, q2)):
         _, one = _runner("red-gsfr")(qq, model.measurement_noise, run.zs, run.active)
         np.testing.assert_allclose(np.asarray(infos.mean[n]), np.asarray(one.mean), rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(infos.loglik[n]), np.asarray(one.loglik), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(infos.loglik[n]), np.asarray(one.loglik), rtol=1e-12, atol=1e-12
+        )

@@ -66,7 +66,10 @@ def _strict_json(text):
 
 def test_json_output_is_strict_json_for_one_run_and_still_plots(tmp_path, capsys):
     """Issue 15 item 7: one run has no standard error: ``null``, never ``NaN``."""
-    assert cli.main(["study", "jump", "--runs", "1", "--filters", "NL-GSF", "--out", str(tmp_path), "--json"]) == 0
+    assert (
+        cli.main(["study", "jump", "--runs", "1", "--filters", "NL-GSF", "--out", str(tmp_path), "--json"])
+        == 0
+    )
     data = _strict_json(capsys.readouterr().out)
     assert data["filters"]["NL-GSF"]["armse_stderr"] is None
     assert data["filters"]["NL-GSF"]["n_runs"] == 1
@@ -74,15 +77,18 @@ def test_json_output_is_strict_json_for_one_run_and_still_plots(tmp_path, capsys
     assert (tmp_path / "jump.png").exists()  # --json still writes the plot
 
 
-@pytest.mark.parametrize("argv, match", [
-    (["static", "--draws", "0"], "--draws"),
-    (["static", "--seed", str(2**70)], "--seed"),
-    (["study", "jump", "--seed", "-1"], "--seed"),
-    (["study", "jump", "--runs", "0"], "--runs"),
-    (["study", "jump", "--chunk-size", "0"], "--chunk-size"),
-    (["study", "jump", "--runs", "1", "--filters", "XYZ"], "filters"),
-    (["reproduce", "nope"], "unknown table"),
-])
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["static", "--draws", "0"], "--draws"),
+        (["static", "--seed", str(2**70)], "--seed"),
+        (["study", "jump", "--seed", "-1"], "--seed"),
+        (["study", "jump", "--runs", "0"], "--runs"),
+        (["study", "jump", "--chunk-size", "0"], "--chunk-size"),
+        (["study", "jump", "--runs", "1", "--filters", "XYZ"], "filters"),
+        (["reproduce", "nope"], "unknown table"),
+    ],
+)
 def test_user_errors_are_one_line_and_exit_2(argv, match, capsys):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
@@ -99,8 +105,9 @@ def test_bad_out_folder_is_a_one_line_error(tmp_path, capsys):
 
 
 def test_user_error_in_a_real_process_has_no_traceback():
-    res = subprocess.run([sys.executable, "-m", "gmjax.cli", "static", "--draws", "0"], capture_output=True,
-                         text=True)
+    res = subprocess.run(
+        [sys.executable, "-m", "gmjax.cli", "static", "--draws", "0"], capture_output=True, text=True
+    )
     assert res.returncode == 2
     assert res.stderr.strip().count("\n") == 0 and "Traceback" not in res.stderr
 

@@ -25,8 +25,9 @@ from reference import pcm_numpy as ref  # noqa: E402
 def scalar_gm(means, sigmas, weights=None, capacity=None, dtype=jnp.float64):
     n = len(means)
     w = np.ones(n) if weights is None else np.asarray(weights)
-    return GaussianMixture.create(w, np.asarray(means, float), np.asarray(sigmas, float) ** 2,
-                                  capacity=capacity, dtype=dtype)
+    return GaussianMixture.create(
+        w, np.asarray(means, float), np.asarray(sigmas, float) ** 2, capacity=capacity, dtype=dtype
+    )
 
 
 def rows(*sets, K):

@@ -75,7 +75,9 @@ def test_every_reducer_follows_the_protocol_under_jit_and_vmap(name):
     for i, seed in enumerate((2, 3)):
         one = drive(reducer, _mixture(seed), key)[0]
         np.testing.assert_allclose(np.asarray(batched.means[i]), np.asarray(one.means), rtol=1e-9, atol=1e-10)
-        np.testing.assert_allclose(np.asarray(batched.weights[i]), np.asarray(one.weights), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(batched.weights[i]), np.asarray(one.weights), rtol=1e-9, atol=1e-12
+        )
 
 
 # reducers whose output is a smooth function of the input means away from decision boundaries
@@ -85,7 +87,8 @@ _SLOW_GRAD = {"pcm", "gmrcm", "brute_force", "williams"}
 
 
 @pytest.mark.parametrize(
-    "name", [n if n not in _SLOW_GRAD else pytest.param(n, marks=pytest.mark.slow) for n in _GRAD])
+    "name", [n if n not in _SLOW_GRAD else pytest.param(n, marks=pytest.mark.slow) for n in _GRAD]
+)
 def test_every_reducer_is_differentiable_in_the_mixture(name):
     """``jax.grad`` through ``reduce`` w.r.t. the component means is finite and equals a central
     finite difference (the decisions do not change within ``eps`` at this generic point)."""
@@ -152,8 +155,14 @@ def _imm_filters(kind):
         models = manoeuvring_target.imm_models()
         if kind == "imm":
             return F.build_imm(models, manoeuvring_target.TRANSITION, filter="kf")
-        return F.build_imm_gsf(models, manoeuvring_target.TRANSITION, local="kf",
-                               reducer=reduction.Runnalls(num_out=4, capacity=4), capacity=4)
+        return F.build_imm_gsf(
+            models,
+            manoeuvring_target.TRANSITION,
+            local="kf",
+            reducer=reduction.Runnalls(num_out=4, capacity=4),
+            capacity=4,
+        )
+
     return build
 
 
@@ -164,17 +173,34 @@ def _imm_scenario():
 # name -> (scenario factory, filter factory, whether d(loglik)/d(params) is smooth)
 FILTERS = {
     "kf": (_linear, lambda sc: F.build_kf(sc.model), True),
-    "kalman_filter": (_linear, lambda sc: F.kalman_filter(
-        np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[1.0, 0.0]]), np.eye(2), np.eye(1), np.zeros(2),
-        10.0 * np.eye(2)), True),
+    "kalman_filter": (
+        _linear,
+        lambda sc: F.kalman_filter(
+            np.array([[1.0, 1.0], [0.0, 1.0]]),
+            np.array([[1.0, 0.0]]),
+            np.eye(2),
+            np.eye(1),
+            np.zeros(2),
+            10.0 * np.eye(2),
+        ),
+        True,
+    ),
     "ekf": (_jump, lambda sc: F.build_ekf(sc.model), True),
     "ukf": (_jump, lambda sc: F.build_ukf(sc.model), True),
     "ckf": (_jump, lambda sc: F.build_ckf(sc.model), True),
     "ghkf": (_jump, lambda sc: F.build_ghkf(sc.model), True),
     "sgkf": (_jump, lambda sc: F.build_sgkf(sc.model), True),
     "sckf": (_jump, lambda sc: F.build_sckf(sc.model), True),
-    "gsf_runnalls": (_jump, lambda sc: F.build_gsf(sc.model, "ekf", reduction.Runnalls(num_out=6), capacity=6), True),
-    "gsf_gmrcm": (_jump, lambda sc: F.build_gsf(sc.model, "ukf", reduction.GMRCM(capacity=6, newton_steps=0), capacity=6), True),
+    "gsf_runnalls": (
+        _jump,
+        lambda sc: F.build_gsf(sc.model, "ekf", reduction.Runnalls(num_out=6), capacity=6),
+        True,
+    ),
+    "gsf_gmrcm": (
+        _jump,
+        lambda sc: F.build_gsf(sc.model, "ukf", reduction.GMRCM(capacity=6, newton_steps=0), capacity=6),
+        True,
+    ),
     "imm": (_imm_scenario, _imm_filters("imm"), True),
     "imm_gsf": (_imm_scenario, _imm_filters("imm_gsf"), True),
     "agsf": (lambda: gamma_system()._replace(n_steps=N_STEPS), lambda sc: F.build_agsf(sc.model), True),
@@ -188,7 +214,8 @@ _FAST = {"kalman_filter", "ukf", "gsf_runnalls", "pf"}
 def _scale_floats(tree, factor):
     """Every floating leaf of a params pytree times ``factor`` (a direction that keeps covariances PD)."""
     return jax.tree_util.tree_map(
-        lambda a: a * factor if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree)
+        lambda a: a * factor if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree
+    )
 
 
 @pytest.mark.parametrize(
@@ -225,12 +252,15 @@ def test_every_filter_runs_through_the_one_driver(name):
     for i in range(2):
         one = jax.jit(driver)(zss[i], param_sets[i], key)[1]
         np.testing.assert_allclose(np.asarray(batched.mean[i]), np.asarray(one.mean), rtol=1e-9, atol=1e-9)
+
     # grad of the summed log-likelihood w.r.t. the whole params pytree, checked along a direction
     # that scales every floating leaf (noise covariances, means, weights, thresholds together)
     def total(eps):
         return jnp.sum(driver(zss[0], _scale_floats(filt.params, 1.0 + eps), key)[1].loglik)
 
-    grads = jax.jit(jax.grad(lambda p: jnp.sum(driver(zss[0], p, key)[1].loglik), allow_int=True))(filt.params)
+    grads = jax.jit(jax.grad(lambda p: jnp.sum(driver(zss[0], p, key)[1].loglik), allow_int=True))(
+        filt.params
+    )
     for leaf in jax.tree_util.tree_leaves(grads):
         if jnp.issubdtype(jnp.asarray(leaf).dtype, jnp.floating):
             assert np.all(np.isfinite(np.asarray(leaf)))
@@ -248,5 +278,13 @@ def test_configs_of_different_classes_never_share_a_tree_structure():
     assert a != b
     gm = _mixture(0)
     f = jax.jit(lambda r, g: drive(r, g, None)[0].weights)
-    np.testing.assert_allclose(f(reduction.BruteForce(num_out=3), gm), drive(reduction.BruteForce(num_out=3), gm, None)[0].weights, rtol=1e-10)
-    np.testing.assert_allclose(f(reduction.PruneTop(num_out=3), gm), drive(reduction.PruneTop(num_out=3), gm, None)[0].weights, rtol=1e-10)
+    np.testing.assert_allclose(
+        f(reduction.BruteForce(num_out=3), gm),
+        drive(reduction.BruteForce(num_out=3), gm, None)[0].weights,
+        rtol=1e-10,
+    )
+    np.testing.assert_allclose(
+        f(reduction.PruneTop(num_out=3), gm),
+        drive(reduction.PruneTop(num_out=3), gm, None)[0].weights,
+        rtol=1e-10,
+    )

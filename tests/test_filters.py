@@ -311,7 +311,9 @@ def test_gm_noise_and_prior_are_moment_matched():
     np.testing.assert_allclose(np.asarray(a.mean), np.asarray(b.mean), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", ["sckf", pytest.param("ekf", marks=pytest.mark.slow), pytest.param("ukf", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "name", ["sckf", pytest.param("ekf", marks=pytest.mark.slow), pytest.param("ukf", marks=pytest.mark.slow)]
+)
 def test_padded_slots_do_not_change_results(name):
     zs = jnp.asarray(simulate(5, T))
     a, ia = runner(name)[1](zs)
@@ -322,7 +324,9 @@ def test_padded_slots_do_not_change_results(name):
 
 
 # ---- NaN measurements, repair ------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["ckf", pytest.param("ekf", marks=pytest.mark.slow), pytest.param("sckf", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "name", ["ckf", pytest.param("ekf", marks=pytest.mark.slow), pytest.param("sckf", marks=pytest.mark.slow)]
+)
 def test_nan_measurement_is_predict_only(name):
     flt, run_ = runner(name)
     zs = np.asarray(simulate(6, T))
@@ -345,7 +349,8 @@ def test_nan_measurement_is_predict_only(name):
 
 
 @pytest.mark.parametrize(
-    "name", ["kf", "sckf", pytest.param("ekf", marks=pytest.mark.slow), pytest.param("ckf", marks=pytest.mark.slow)]
+    "name",
+    ["kf", "sckf", pytest.param("ekf", marks=pytest.mark.slow), pytest.param("ckf", marks=pytest.mark.slow)],
 )
 def test_indefinite_covariance_is_repaired_and_flagged(name):
     loc = LOCALS[name]()
@@ -372,7 +377,9 @@ def test_sigma_filter_with_indefinite_prior_flags_repair():
 
 
 # ---- jit / vmap / dtypes -----------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["ckf", pytest.param("sckf", marks=pytest.mark.slow), pytest.param("ekf", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "name", ["ckf", pytest.param("sckf", marks=pytest.mark.slow), pytest.param("ekf", marks=pytest.mark.slow)]
+)
 def test_jit_equals_eager_and_vmap_equals_loop(name):
     flt, jitted = runner(name)
     zs = jnp.asarray(np.stack([simulate(s, T) for s in range(3)]))
@@ -515,7 +522,9 @@ def test_vmap_over_measurement_noise_equals_loop():
 
     def loglik(scale):
         r = flt.params.measurement_noise
-        return F.run(flt, zs, params=flt.params._replace(measurement_noise=r._replace(covs=r.covs * scale)))[1].loglik
+        return F.run(flt, zs, params=flt.params._replace(measurement_noise=r._replace(covs=r.covs * scale)))[
+            1
+        ].loglik
 
     batched = jax.jit(jax.vmap(loglik))(scales)
     for i, s in enumerate(scales):

@@ -27,7 +27,9 @@ def test_product_normalizer_matches_numerical_integral():
     x = np.linspace(-20, 20, 200001)
     integrand = stats.norm(m1, np.sqrt(p1)).pdf(x) * stats.norm(m2, np.sqrt(p2)).pdf(x)
     numeric = np.trapezoid(integrand, x)
-    closed = gaussian.product_normalizer(jnp.array([m1]), jnp.array([[p1]]), jnp.array([m2]), jnp.array([[p2]]))
+    closed = gaussian.product_normalizer(
+        jnp.array([m1]), jnp.array([[p1]]), jnp.array([m2]), jnp.array([[p2]])
+    )
     np.testing.assert_allclose(closed, numeric, rtol=1e-9)
 
 
@@ -38,7 +40,9 @@ def test_mahalanobis_and_kl():
     P1, P2 = random_spd(rng, d), random_spd(rng, d)
     r = m1 - m2
     np.testing.assert_allclose(gaussian.mahalanobis_sq(m1, m2, P2), r @ np.linalg.solve(P2, r), rtol=1e-12)
-    np.testing.assert_allclose(gaussian.mahalanobis(m1, m2, P2), np.sqrt(r @ np.linalg.solve(P2, r)), rtol=1e-12)
+    np.testing.assert_allclose(
+        gaussian.mahalanobis(m1, m2, P2), np.sqrt(r @ np.linalg.solve(P2, r)), rtol=1e-12
+    )
     P2i = np.linalg.inv(P2)
     kl = 0.5 * (np.trace(P2i @ P1) + r @ P2i @ r - d + np.log(np.linalg.det(P2) / np.linalg.det(P1)))
     np.testing.assert_allclose(gaussian.kl_divergence(m1, P1, m2, P2), kl, rtol=1e-11)
@@ -70,7 +74,9 @@ def test_safe_cholesky_repairs_indefinite_and_flags(dtype):
     rebuilt = res.factor @ res.factor.T
     assert np.linalg.eigvalsh(np.asarray(rebuilt, np.float64))[0] > 0
     # the repair adds jitter on the diagonal only
-    np.testing.assert_allclose(rebuilt - np.asarray(res.jitter) * np.eye(2), P, atol=1e-5 if dtype == jnp.float32 else 1e-12)
+    np.testing.assert_allclose(
+        rebuilt - np.asarray(res.jitter) * np.eye(2), P, atol=1e-5 if dtype == jnp.float32 else 1e-12
+    )
 
 
 def test_safe_cholesky_gradient_finite_for_pd_and_repaired():
@@ -86,7 +92,9 @@ def test_logpdf_float32_close_to_float64():
     rng = np.random.default_rng(3)
     m, P, x = rng.normal(size=3), random_spd(rng, 3), rng.normal(size=3)
     v64 = gaussian.logpdf(x, m, P)
-    v32 = gaussian.logpdf(jnp.asarray(x, jnp.float32), jnp.asarray(m, jnp.float32), jnp.asarray(P, jnp.float32))
+    v32 = gaussian.logpdf(
+        jnp.asarray(x, jnp.float32), jnp.asarray(m, jnp.float32), jnp.asarray(P, jnp.float32)
+    )
     assert v32.dtype == jnp.float32
     np.testing.assert_allclose(v32, v64, rtol=1e-5)
 
@@ -107,7 +115,9 @@ def test_safe_cholesky_of_zero_covariance_is_finite_and_flagged(dtype):
     res = jax.jit(gaussian.safe_cholesky)(jnp.zeros((2, 2), dtype))
     assert bool(res.repaired)
     assert np.all(np.isfinite(res.factor)) and float(res.jitter) > 0
-    assert np.isfinite(float(gaussian.mahalanobis_sq(jnp.ones(2, dtype), jnp.zeros(2, dtype), jnp.zeros((2, 2), dtype))))
+    assert np.isfinite(
+        float(gaussian.mahalanobis_sq(jnp.ones(2, dtype), jnp.zeros(2, dtype), jnp.zeros((2, 2), dtype)))
+    )
 
 
 @pytest.mark.parametrize("d", [1, 2, 3])

@@ -32,9 +32,13 @@ def as_np(gm: GaussianMixture):
 def linear_model(dtype=jnp.float64):
     F = jnp.array([[1.0, 0.5], [0.0, 0.9]], dtype)
     H = jnp.array([[1.0, 0.0]], dtype)
-    q = GaussianMixture.create([0.7, 0.3], [[0.0, 0.0], [0.3, -0.2]], [np.diag([0.05, 0.1]), np.diag([0.2, 0.3])], dtype=dtype)
+    q = GaussianMixture.create(
+        [0.7, 0.3], [[0.0, 0.0], [0.3, -0.2]], [np.diag([0.05, 0.1]), np.diag([0.2, 0.3])], dtype=dtype
+    )
     r = GaussianMixture.create([0.8, 0.2], [[0.0], [1.5]], [[[0.3]], [[2.0]]], dtype=dtype)
-    prior = GaussianMixture.create([0.5, 0.5], [[-1.0, 0.0], [1.0, 0.5]], [np.eye(2), 0.5 * np.eye(2)], dtype=dtype)
+    prior = GaussianMixture.create(
+        [0.5, 0.5], [[-1.0, 0.0], [1.0, 0.5]], [np.eye(2), 0.5 * np.eye(2)], dtype=dtype
+    )
     model = StateSpaceModel(lambda x, t: F @ x, lambda x, t: H @ x, q, r, prior)
     return model, np.asarray(F, float), np.asarray(H, float)
 
@@ -47,7 +51,9 @@ def test_linear_gsf_without_reduction_equals_enumerated_exact_posterior():
     filt = build_gsf(model, "ekf", None, capacity=capacity, track_ise=False)
     states, infos = jax.jit(lambda z: run(filt, z))(jnp.asarray(zs))
     assert not np.any(infos.flags.overflow)
-    exact = gsf_np.enumerate_linear_posterior(as_np(model.prior), zs, F, H, as_np(model.process_noise), as_np(model.measurement_noise))
+    exact = gsf_np.enumerate_linear_posterior(
+        as_np(model.prior), zs, F, H, as_np(model.process_noise), as_np(model.measurement_noise)
+    )
     final = jax.tree_util.tree_map(lambda a: a[-1], states.mixture)
     assert int(gmm.n_active(final)) == len(exact[0])
     # compare as densities (slot order differs) and through moments
@@ -87,8 +93,15 @@ def test_matches_numpy_gsf_with_number_limited_pruning():
     h = lambda x, t: x**2 / 20 if t <= 80 else 3 * x - 4  # noqa: E731
     h_jac = lambda x, t: np.atleast_2d(x / 10 if t <= 80 else 3.0)  # noqa: E731
     ests, covs, _ = gsf_np.run_gsf(
-        as_np(m.prior), np.asarray(zs), f, h, as_np(m.process_noise), as_np(m.measurement_noise),
-        reducer=lambda mix: gsf_np.keep_heaviest(mix, K), f_jac=f_jac, h_jac=h_jac,
+        as_np(m.prior),
+        np.asarray(zs),
+        f,
+        h,
+        as_np(m.process_noise),
+        as_np(m.measurement_noise),
+        reducer=lambda mix: gsf_np.keep_heaviest(mix, K),
+        f_jac=f_jac,
+        h_jac=h_jac,
     )
     np.testing.assert_allclose(infos.mean, ests, rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(infos.cov, covs, rtol=1e-8, atol=1e-8)
@@ -202,8 +215,7 @@ def test_grad_of_loglik_wrt_noise_covariance_and_pruning_threshold_matches_finit
 
     sc = jump_system()._replace(n_steps=10)
     _, zs, ts = simulate(sc, jax.random.key(2))
-    filt = build_gsf(sc.model, "ekf", PruneThreshold(threshold=0.05, capacity=8), capacity=8,
-                     track_ise=False)
+    filt = build_gsf(sc.model, "ekf", PruneThreshold(threshold=0.05, capacity=8), capacity=8, track_ise=False)
     p0 = filt.params
 
     def loglik_q(scale):
@@ -238,8 +250,9 @@ def test_vmap_over_parameter_sets_equals_loop():
 
     def loglik(scale):
         r = filt.params.model.measurement_noise
-        params = filt.params._replace(model=filt.params.model._replace(
-            measurement_noise=r._replace(covs=r.covs * scale)))
+        params = filt.params._replace(
+            model=filt.params.model._replace(measurement_noise=r._replace(covs=r.covs * scale))
+        )
         return run(filt, zs, params=params)[1].loglik
 
     batched = jax.jit(jax.vmap(loglik))(scales)

@@ -65,9 +65,7 @@ def test_imm_matches_filterpy():
         imm.update(z)
         xs.append(imm.x.copy()), Ps.append(imm.P.copy()), mus.append(imm.mu.copy())
         x1.append(kfs[1].x.copy())
-    ours = F.build_imm(
-        [make_model(CV, Q1), make_model(DAMPED, Q2)], TRANS, filter="kf", initial_probs=MU0
-    )
+    ours = F.build_imm([make_model(CV, Q1), make_model(DAMPED, Q2)], TRANS, filter="kf", initial_probs=MU0)
     assert isinstance(ours.params, IMMParams)
     states, infos = jax.jit(lambda z: F.run(ours, z))(jnp.asarray(zs))
     mean, cov = infos.mean, infos.cov
@@ -124,8 +122,11 @@ def test_jit_eager_and_vmap_loop():
     np.testing.assert_allclose(np.asarray(eager[1].loglik), np.asarray(jgo(zs[0])[1].loglik), rtol=1e-12)
     for i in range(1, 3):
         one = jgo(zs[i])
-        np.testing.assert_allclose(np.asarray(one[1].extra["model_probs"]),
-                                   np.asarray(batched[1].extra["model_probs"][i]), rtol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(one[1].extra["model_probs"]),
+            np.asarray(batched[1].extra["model_probs"][i]),
+            rtol=1e-12,
+        )
 
 
 def test_float32():
@@ -202,9 +203,7 @@ def test_bad_input_raises():
         F.build_imm([m, m], TRANS, initial_probs=[0.5, 0.6])
     with pytest.raises(ValueError, match="filter"):
         F.build_imm([m, m], TRANS, filter="magic")
-    other = m._replace(
-        measurement_noise=GM.create([1.0], [[0.0]], [[[1.0]]]), h=lambda x, t: x[:1]
-    )
+    other = m._replace(measurement_noise=GM.create([1.0], [[0.0]], [[[1.0]]]), h=lambda x, t: x[:1])
     with pytest.raises(ValueError, match="models"):
         F.build_imm([m, other], TRANS)
     with pytest.raises(ValueError, match="models"):

@@ -20,8 +20,10 @@ def _td(dt):
 
 
 def _numjac(fn, x, eps=1e-6):
-    cols = [(np.asarray(fn(jnp.asarray(x + eps * e))) - np.asarray(fn(jnp.asarray(x - eps * e)))) / (2 * eps)
-            for e in np.eye(len(x))]
+    cols = [
+        (np.asarray(fn(jnp.asarray(x + eps * e))) - np.asarray(fn(jnp.asarray(x - eps * e)))) / (2 * eps)
+        for e in np.eye(len(x))
+    ]
     return np.stack(cols, axis=1)
 
 
@@ -38,10 +40,12 @@ def test_nth_derivative_matches_stonesoup(dt):
         ours = lib.nth_derivative(order, ndim, q)
         qs = np.broadcast_to(np.asarray(q, float), (ndim,))
         ss = lin.CombinedLinearGaussianTransitionModel(
-            [lin.ConstantNthDerivative(constant_derivative=order, noise_diff_coeff=float(qa)) for qa in qs])
+            [lin.ConstantNthDerivative(constant_derivative=order, noise_diff_coeff=float(qa)) for qa in qs]
+        )
         np.testing.assert_allclose(ours.F(jnp.asarray(dt)), ss.matrix(time_interval=_td(dt)), atol=1e-12)
-        np.testing.assert_allclose(ours.Q(jnp.asarray(dt)), ss.covar(time_interval=_td(dt)), rtol=1e-10,
-                                   atol=1e-14)
+        np.testing.assert_allclose(
+            ours.Q(jnp.asarray(dt)), ss.covar(time_interval=_td(dt)), rtol=1e-10, atol=1e-14
+        )
 
 
 @pytest.mark.parametrize("dt", DTS)
@@ -114,8 +118,7 @@ def test_measurement_models_match_stonesoup():
     x6 = np.array([-30.0, 2.0, 40.0, -1.0, 12.0, 0.3])
     ebr = lib.elevation_bearing_range((0, 2, 4))
     sse = nlm.CartesianToElevationBearingRange(ndim_state=6, mapping=(0, 2, 4), noise_covar=np.eye(3))
-    np.testing.assert_allclose(ebr.h(jnp.asarray(x6)), _ss(sse, x6),
-                               rtol=1e-12)
+    np.testing.assert_allclose(ebr.h(jnp.asarray(x6)), _ss(sse, x6), rtol=1e-12)
     bo = lib.bearings_only((0, 2))
     ssb = nlm.Cartesian2DToBearing(ndim_state=4, mapping=(0, 2), noise_covar=np.eye(1))
     np.testing.assert_allclose(bo.h(jnp.asarray(x4)), _ss(ssb, x4), rtol=1e-12)

@@ -11,7 +11,11 @@ from gmjax import mixture as mx
 def gm_1d(seed, K, capacity=None, dtype=None):
     rng = np.random.default_rng(seed)
     return GaussianMixture.create(
-        rng.uniform(0.05, 1, K), rng.uniform(-2, 3, K), rng.uniform(0.2, 1.5, K) ** 2, capacity=capacity, dtype=dtype
+        rng.uniform(0.05, 1, K),
+        rng.uniform(-2, 3, K),
+        rng.uniform(0.2, 1.5, K) ** 2,
+        capacity=capacity,
+        dtype=dtype,
     )
 
 
@@ -75,7 +79,9 @@ def test_ise_properties():
 
 def test_results_unchanged_by_padding_anywhere():
     a, b = gm_2d(8, 3), gm_2d(9, 2)
-    a_pad = mx.concat(mx.pad(jax.tree_util.tree_map(lambda x: x[:1], a), 4), jax.tree_util.tree_map(lambda x: x[1:], a))
+    a_pad = mx.concat(
+        mx.pad(jax.tree_util.tree_map(lambda x: x[:1], a), 4), jax.tree_util.tree_map(lambda x: x[1:], a)
+    )
     b_pad = mx.pad(b, 5)
     for f in (metrics.ise, metrics.nise, metrics.l2_inner):
         np.testing.assert_allclose(f(a_pad, b_pad), f(a, b), rtol=1e-13)

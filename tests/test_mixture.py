@@ -55,7 +55,10 @@ def test_create_without_normalization_keeps_weights():
         (dict(weights=[1, 1], means=[0.0, 1.0], covs=[1.0, np.nan]), r"covs: non-finite .* component 1"),
         (dict(weights=[1, -0.5], means=[0.0, 1.0], covs=[1.0, 1.0]), r"weights: negative .* index 1"),
         (dict(weights=[0, 0], means=[0.0, 1.0], covs=[1.0, 1.0]), r"weights: all live weights are zero"),
-        (dict(weights=[1, 1], means=[0.0, 1.0], covs=[1.0, -1.0]), r"covs: component 1 is not positive definite"),
+        (
+            dict(weights=[1, 1], means=[0.0, 1.0], covs=[1.0, -1.0]),
+            r"covs: component 1 is not positive definite",
+        ),
         (dict(weights=[1, 1], means=[0.0, 1.0, 2.0], covs=[1.0, 1.0]), r"means: expected shape"),
         (dict(weights=[1, 1], means=[[0.0, 0.0], [1.0, 1.0]], covs=[1.0, 1.0]), r"covs: expected shape"),
         (dict(weights=[1, 1], means=[0.0, 1.0], covs=[1.0, 1.0], capacity=1), r"capacity: 1 is smaller"),
@@ -71,14 +74,22 @@ def test_create_rejects_bad_input(kwargs, message):
     "kwargs, message",
     [
         (dict(weights=[1.0], means=[1e300], covs=[1.0]), r"means: component 0 overflows float32"),
-        (dict(weights=[1.0, 1.0], means=[0.0, 1.0], covs=[1.0, 1e-50]),
-         r"covs: component 1 is not positive definite in float32"),
-        (dict(weights=[1e300, 1e300], means=[0.0, 1.0], covs=[1.0, 1.0], normalize=False),
-         r"weights: component 0 overflows float32"),
-        (dict(weights=[1.0, 1e-50], means=[0.0, 1.0], covs=[1.0, 1.0]),
-         r"weights: weight 1e-50 at index 1 underflows to 0 in float32"),
-        (dict(weights=[1.0], means=[[0.0, 0.0]], covs=[[[1.0, 1.0 - 1e-12], [1.0 - 1e-12, 1.0]]]),
-         r"covs: component 0 is not positive definite in float32"),
+        (
+            dict(weights=[1.0, 1.0], means=[0.0, 1.0], covs=[1.0, 1e-50]),
+            r"covs: component 1 is not positive definite in float32",
+        ),
+        (
+            dict(weights=[1e300, 1e300], means=[0.0, 1.0], covs=[1.0, 1.0], normalize=False),
+            r"weights: component 0 overflows float32",
+        ),
+        (
+            dict(weights=[1.0, 1e-50], means=[0.0, 1.0], covs=[1.0, 1.0]),
+            r"weights: weight 1e-50 at index 1 underflows to 0 in float32",
+        ),
+        (
+            dict(weights=[1.0], means=[[0.0, 0.0]], covs=[[[1.0, 1.0 - 1e-12], [1.0 - 1e-12, 1.0]]]),
+            r"covs: component 0 is not positive definite in float32",
+        ),
     ],
 )
 def test_create_validates_after_casting(kwargs, message):
@@ -249,7 +260,10 @@ def test_from_gaussian_and_from_arrays_sanitize():
     g = mx.from_gaussian(jnp.array([1.0, 2.0]), 2 * jnp.eye(2), capacity=3)
     mx.check(g)
     dirty = GaussianMixture.from_arrays(
-        jnp.array([1.0, 5.0]), jnp.array([[0.0], [7.0]]), jnp.array([[[1.0]], [[-3.0]]]), jnp.array([True, False])
+        jnp.array([1.0, 5.0]),
+        jnp.array([[0.0], [7.0]]),
+        jnp.array([[[1.0]], [[-3.0]]]),
+        jnp.array([True, False]),
     )
     mx.check(dirty)
 

@@ -28,7 +28,9 @@ def test_jump_system_process_noise_matches_eq50_first_two_moments():
     sc = jump_system()
     q_mean, q_cov = gmm.moments(sc.model.process_noise)
     n = 100_000
-    draws = np.asarray(jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(1), n)))[:, 0]
+    draws = np.asarray(
+        jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(1), n))
+    )[:, 0]
     assert abs(draws.mean() - float(q_mean[0])) < 5 * np.sqrt(float(q_cov[0, 0]) / n)
     fourth = np.mean((draws - draws.mean()) ** 4)
     assert abs(draws.var() - float(q_cov[0, 0])) < 5 * np.sqrt((fourth - draws.var() ** 2) / n)
@@ -77,7 +79,9 @@ def _moments_within_se(draws, mean, cov, n_se=5):
 def test_seed001_gamma_system():
     sc = gamma_system()
     n = 100_000
-    draws = np.asarray(jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(5), n)))
+    draws = np.asarray(
+        jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(5), n))
+    )
     _moments_within_se(draws, np.array([6.0]), np.array([[12.0]]))  # Ga(shape 3, scale 2)
     np.testing.assert_allclose(sc.model.h(jnp.array([2.0]), 30), [0.8])
     np.testing.assert_allclose(sc.model.h(jnp.array([2.0]), 31), [-1.0])

@@ -45,10 +45,27 @@ def small_study(n_steps=10):
 
 def numbers(r: montecarlo.MonteCarloResult) -> dict:
     """Every number of a result (not the timings)."""
-    out = {k: getattr(r, k) for k in ("rmse", "position_rmse", "armse", "armse_stderr", "position_armse",
-                                      "position_armse_stderr", "nees", "anees", "median_nees", "cep",
-                                      "mean_cost", "mean_ise", "n_components", "flag_rate", "n_runs_flagged",
-                                      "n_runs")}
+    out = {
+        k: getattr(r, k)
+        for k in (
+            "rmse",
+            "position_rmse",
+            "armse",
+            "armse_stderr",
+            "position_armse",
+            "position_armse_stderr",
+            "nees",
+            "anees",
+            "median_nees",
+            "cep",
+            "mean_cost",
+            "mean_ise",
+            "n_components",
+            "flag_rate",
+            "n_runs_flagged",
+            "n_runs",
+        )
+    }
     out.update({f"moments.{k}": v for k, v in r.moments._asdict().items()})
     return out
 
@@ -70,14 +87,17 @@ def assert_close(a, b, rtol):
 def test_run_keys_are_the_split_keys():
     key = jax.random.key(11)
     split = jax.random.key_data(jax.random.split(key, 50))
-    folded = jax.random.key_data(jax.vmap(montecarlo.run_key, (None, 0))(key, jnp.arange(50, dtype=jnp.uint32)))
+    folded = jax.random.key_data(
+        jax.vmap(montecarlo.run_key, (None, 0))(key, jnp.arange(50, dtype=jnp.uint32))
+    )
     np.testing.assert_array_equal(split, folded)
 
 
 def test_summary_matches_numpy_aggregation_of_every_run():
     sc, filt = small_study()
-    r = montecarlo.monte_carlo(filt, sc, 13, jax.random.key(1), chunk_size=4, keep_trajectories=True,
-                               progress=False)
+    r = montecarlo.monte_carlo(
+        filt, sc, 13, jax.random.key(1), chunk_size=4, keep_trajectories=True, progress=False
+    )
     s = r.scores
     assert s.sq_error.shape == (13, 10) and s.estimates.shape == (13, 10, 1)
     err = s.estimates - s.truths
@@ -105,18 +125,23 @@ def test_histogram_median_is_within_its_stated_accuracy():
         r = montecarlo.summarize(s)
         assert r.median_nees == pytest.approx(np.median(x), rel=MEDIAN_REL)
         assert r.cep == pytest.approx(np.median(x), rel=MEDIAN_REL)
-    with_nan = montecarlo.summarize(montecarlo.RunScores(*(np.asarray([[1.0, np.nan]]),) * 4,
-                                                         np.zeros((1, 2), bool)))
+    with_nan = montecarlo.summarize(
+        montecarlo.RunScores(*(np.asarray([[1.0, np.nan]]),) * 4, np.zeros((1, 2), bool))
+    )
     assert np.isnan(with_nan.median_nees)
 
 
 def test_same_chunk_size_is_bit_identical_across_splits_and_kept_runs():
     sc, filt = small_study()
-    whole = montecarlo.monte_carlo(filt, sc, 10, jax.random.key(0), chunk_size=3, keep_runs=10, progress=False)
-    a = montecarlo.monte_carlo(filt, sc, 10, jax.random.key(0), chunk_size=3, runs=range(0, 6), keep_runs=6,
-                               progress=False)
-    b = montecarlo.monte_carlo(filt, sc, 10, jax.random.key(0), chunk_size=3, runs=range(6, 10),
-                               keep_runs=4, progress=False)
+    whole = montecarlo.monte_carlo(
+        filt, sc, 10, jax.random.key(0), chunk_size=3, keep_runs=10, progress=False
+    )
+    a = montecarlo.monte_carlo(
+        filt, sc, 10, jax.random.key(0), chunk_size=3, runs=range(0, 6), keep_runs=6, progress=False
+    )
+    b = montecarlo.monte_carlo(
+        filt, sc, 10, jax.random.key(0), chunk_size=3, runs=range(6, 10), keep_runs=4, progress=False
+    )
     # per-run numbers: the same compiled chunk, so bit for bit
     for x, y, z in zip(whole.scores, a.scores, b.scores):
         if x is not None:
@@ -127,8 +152,9 @@ def test_same_chunk_size_is_bit_identical_across_splits_and_kept_runs():
     np.testing.assert_array_equal(merged.moments.hist, whole.moments.hist)
     with pytest.raises(ValueError, match="overlap"):
         montecarlo.merge([a, a])
-    other = montecarlo.monte_carlo(filt, sc, 10, jax.random.key(1), chunk_size=3, runs=range(6, 10),
-                                   progress=False)
+    other = montecarlo.monte_carlo(
+        filt, sc, 10, jax.random.key(1), chunk_size=3, runs=range(6, 10), progress=False
+    )
     with pytest.raises(ValueError, match="key"):
         montecarlo.merge([a, other])
 
@@ -162,8 +188,10 @@ def test_save_load_round_trip_and_strict_json(tmp_path):
 def test_checkpoint_resumes_bit_identical_after_a_kill(tmp_path):
     """Kill a study (SIGKILL) after its second checkpoint, rerun the same call: bit-identical result."""
     ckpt = tmp_path / "study.npz"
-    call = "montecarlo.monte_carlo(filt, sc, 14, jax.random.key(9), chunk_size=3, keep_runs=5, " \
-           f"checkpoint=r'{ckpt}', progress=False)"
+    call = (
+        "montecarlo.monte_carlo(filt, sc, 14, jax.random.key(9), chunk_size=3, keep_runs=5, "
+        f"checkpoint=r'{ckpt}', progress=False)"
+    )
     script = SMALL + textwrap.dedent(
         f"""
         import os, signal
@@ -197,11 +225,13 @@ def test_checkpoint_resumes_bit_identical_after_a_kill(tmp_path):
     assert_bit_identical(again, fresh)
     # another configuration is refused, naming what differs
     with pytest.raises(ValueError, match="checkpoint.*differs in: chunk_size"):
-        montecarlo.monte_carlo(filt, sc, 14, jax.random.key(9), chunk_size=4, keep_runs=5, checkpoint=ckpt,
-                               progress=False)
+        montecarlo.monte_carlo(
+            filt, sc, 14, jax.random.key(9), chunk_size=4, keep_runs=5, checkpoint=ckpt, progress=False
+        )
     with pytest.raises(ValueError, match="checkpoint.*differs in: key"):
-        montecarlo.monte_carlo(filt, sc, 14, jax.random.key(8), chunk_size=3, keep_runs=5, checkpoint=ckpt,
-                               progress=False)
+        montecarlo.monte_carlo(
+            filt, sc, 14, jax.random.key(8), chunk_size=3, keep_runs=5, checkpoint=ckpt, progress=False
+        )
 
 
 def test_progress_announces_compilation_and_moves_ten_times(capsys):
@@ -227,7 +257,9 @@ def test_flags_reduce_every_flag_field():
     f = jnp.zeros(5, bool)
     flags = Flags(f, f, f, f.at[3].set(True))
     np.testing.assert_array_equal(montecarlo._any_flag(flags), f.at[3].set(True))
-    s = montecarlo.RunScores(*(np.ones((2, 5)),) * 4, np.stack([np.zeros(5, bool), np.asarray(flags.nonfinite)]))
+    s = montecarlo.RunScores(
+        *(np.ones((2, 5)),) * 4, np.stack([np.zeros(5, bool), np.asarray(flags.nonfinite)])
+    )
     r = montecarlo.summarize(s)
     assert r.n_runs_flagged == 1 and r.flag_rate == pytest.approx(0.1)
 
@@ -236,17 +268,21 @@ def test_armse_stderr_matches_spread_of_independent_studies():
     # the delta-method standard error should describe the spread of ARMSE over independent studies:
     # one compiled study of 8 x 40 runs, summarised as 8 separate studies of 40 runs
     sc = jump_system()._replace(n_steps=10)
-    big = montecarlo.monte_carlo(build_ekf(sc.model), sc, 320, jax.random.key(100), chunk_size=64, keep_runs=320,
-                                 progress=False)
-    parts = [montecarlo.summarize(jax.tree_util.tree_map(lambda a: a[g * 40:(g + 1) * 40], big.scores))
-             for g in range(8)]
+    big = montecarlo.monte_carlo(
+        build_ekf(sc.model), sc, 320, jax.random.key(100), chunk_size=64, keep_runs=320, progress=False
+    )
+    parts = [
+        montecarlo.summarize(jax.tree_util.tree_map(lambda a: a[g * 40 : (g + 1) * 40], big.scores))
+        for g in range(8)
+    ]
     spread = np.std([p.armse for p in parts], ddof=1)
     se = np.mean([p.armse_stderr for p in parts])
     # the sample std of 8 values is itself uncertain by ~25%: accept a factor-2 band
     assert 0.5 * se < spread < 2.0 * se
     # the parts merge into the whole study
-    assert montecarlo.merge([p._replace(runs=(40 * g, 40 * (g + 1))) for g, p in enumerate(parts)]).armse == \
-        pytest.approx(big.armse, rel=1e-13)
+    assert montecarlo.merge(
+        [p._replace(runs=(40 * g, 40 * (g + 1))) for g, p in enumerate(parts)]
+    ).armse == pytest.approx(big.armse, rel=1e-13)
 
 
 def test_single_gaussian_and_particle_filters_run_through_the_same_runner():
@@ -265,10 +301,15 @@ def test_study_loss_gradient_matches_finite_differences():
     q = filt.params.model.process_noise
 
     def params_at(scale):
-        return filt.params._replace(model=filt.params.model._replace(process_noise=q._replace(covs=q.covs * scale)))
+        return filt.params._replace(
+            model=filt.params.model._replace(process_noise=q._replace(covs=q.covs * scale))
+        )
 
-    f = jax.jit(lambda s: montecarlo.study_loss(filt, sc, 4, jax.random.key(5), montecarlo.armse_loss(),
-                                                params=params_at(s)))
+    f = jax.jit(
+        lambda s: montecarlo.study_loss(
+            filt, sc, 4, jax.random.key(5), montecarlo.armse_loss(), params=params_at(s)
+        )
+    )
     g = float(jax.grad(f)(1.3))
     h = 1e-6
     fd = (float(f(1.3 + h)) - float(f(1.3 - h))) / (2 * h)
@@ -282,9 +323,13 @@ def test_study_loss_gradient_matches_finite_differences():
 def test_bad_arguments_raise():
     sc, filt = small_study()
     key = jax.random.key(0)
-    for kwargs, match in (({"n_runs": 0}, "n_runs"), ({"chunk_size": 0}, "chunk_size"),
-                          ({"runs": range(0, 9)}, "runs"), ({"runs": range(2, 2)}, "runs"),
-                          ({"keep_runs": -1}, "keep_runs")):
+    for kwargs, match in (
+        ({"n_runs": 0}, "n_runs"),
+        ({"chunk_size": 0}, "chunk_size"),
+        ({"runs": range(0, 9)}, "runs"),
+        ({"runs": range(2, 2)}, "runs"),
+        ({"keep_runs": -1}, "keep_runs"),
+    ):
         args = {"n_runs": 2, **kwargs}
         with pytest.raises(ValueError, match=match):
             montecarlo.monte_carlo(filt, sc, args.pop("n_runs"), key, progress=False, **args)
@@ -294,8 +339,9 @@ def test_bad_arguments_raise():
     with pytest.raises(ValueError, match="filter: its params hold.*float64"):
         montecarlo.monte_carlo(filt, sc32, 2, key, progress=False)
     with pytest.raises(ValueError, match="scenario: 'jump' .float32. cannot be simulated"):
-        montecarlo.monte_carlo(build_gsf(sc32.model, "ekf", PruneTop(num_out=4), capacity=4), sc32, 2, key,
-                               progress=False)
+        montecarlo.monte_carlo(
+            build_gsf(sc32.model, "ekf", PruneTop(num_out=4), capacity=4), sc32, 2, key, progress=False
+        )
 
 
 def test_same_numbers_on_four_forced_host_devices(tmp_path):
@@ -305,11 +351,15 @@ def test_same_numbers_on_four_forced_host_devices(tmp_path):
         f"""
         assert len(jax.devices()) == 4, jax.devices()
         r = montecarlo.monte_carlo(filt, sc, 6, jax.random.key(5), chunk_size=4, keep_runs=6, progress=False)
-        r.save(r"{tmp_path / 'out.npz'}")
+        r.save(r"{tmp_path / "out.npz"}")
         """
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu",
-               PYTHONPATH=str(ROOT))
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_force_host_platform_device_count=4",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=str(ROOT),
+    )
     res = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
     out = montecarlo.load_result(tmp_path / "out.npz")
@@ -331,24 +381,36 @@ def test_two_processes_with_jax_distributed_equal_one_process(tmp_path):
     sc, filt = small_study()
     ref = montecarlo.monte_carlo(filt, sc, 11, jax.random.key(4), chunk_size=4, keep_runs=5, progress=False)
     port = _free_port()
-    script = textwrap.dedent(
-        """
+    script = (
+        textwrap.dedent(
+            """
         import sys, jax
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         pid = int(sys.argv[1])
         jax.distributed.initialize(coordinator_address=sys.argv[2], num_processes=2, process_id=pid)
         """
-    ) + SMALL + textwrap.dedent(
-        """
+        )
+        + SMALL
+        + textwrap.dedent(
+            """
         assert jax.process_count() == 2 and len(jax.devices()) == 2, jax.devices()
         r = montecarlo.monte_carlo(filt, sc, 11, jax.random.key(4), chunk_size=4, keep_runs=5, progress=False)
         r.save(sys.argv[3] + f"/out{pid}.npz")
         """
+        )
     )
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
     env.pop("XLA_FLAGS", None)
-    procs = [subprocess.Popen([sys.executable, "-c", script, str(i), f"127.0.0.1:{port}", str(tmp_path)],
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in (0, 1)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script, str(i), f"127.0.0.1:{port}", str(tmp_path)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in (0, 1)
+    ]
     outs = [p.communicate(timeout=300) for p in procs]
     for p, (_, err) in zip(procs, outs):
         assert p.returncode == 0, err[-3000:]
@@ -369,8 +431,11 @@ def test_study_of_an_irregular_time_scenario_uses_its_inputs():
     from gmjax.models import inputs_from_times, scenario_from_model, simulate
     from gmjax.models import library as lib
 
-    model = lib.state_space_model(lib.constant_velocity(1, 0.5), lib.cartesian_position((0,), 2, 0.1),
-                                  mixture.from_gaussian(jnp.zeros(2), jnp.eye(2)))
+    model = lib.state_space_model(
+        lib.constant_velocity(1, 0.5),
+        lib.cartesian_position((0,), 2, 0.1),
+        mixture.from_gaussian(jnp.zeros(2), jnp.eye(2)),
+    )
     sc = scenario_from_model(model, 6, inputs=inputs_from_times(np.array([0.1, 0.3, 1.3, 1.4, 2.9, 3.0])))
     filt = build_kf(model)
     key = jax.random.key(3)

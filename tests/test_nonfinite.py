@@ -25,7 +25,8 @@ BAD_ROWS = (2, 5)
 
 
 @pytest.mark.parametrize(
-    "name", [n if n in _FAST else pytest.param(n, marks=pytest.mark.slow) for n in sorted(FILTERS)])
+    "name", [n if n in _FAST else pytest.param(n, marks=pytest.mark.slow) for n in sorted(FILTERS)]
+)
 def test_infinite_measurement_is_a_flagged_predict_only_step_and_the_filter_recovers(name):
     make_scenario, build, _ = FILTERS[name]
     sc = make_scenario()
@@ -54,13 +55,20 @@ def test_infinite_measurement_is_a_flagged_predict_only_step_and_the_filter_reco
     np.testing.assert_array_equal(np.asarray(inf_run.loglik)[expected], 0.0)
     # before the first bad step nothing changes
     k = BAD_ROWS[0]
-    np.testing.assert_allclose(np.asarray(inf_run.mean[:k]), np.asarray(clean.mean[:k]), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(inf_run.mean[:k]), np.asarray(clean.mean[:k]), rtol=1e-12, atol=1e-12
+    )
 
 
 def test_is_missing_decides_on_every_non_finite_entry():
     from gmjax.filters._core import is_missing
 
-    for z, want in (([0.0, 1.0], False), ([np.inf, 1.0], True), ([0.0, -np.inf], True), ([np.nan, 0.0], True)):
+    for z, want in (
+        ([0.0, 1.0], False),
+        ([np.inf, 1.0], True),
+        ([0.0, -np.inf], True),
+        ([np.nan, 0.0], True),
+    ):
         assert bool(is_missing(jnp.asarray(z))) is want
 
 

@@ -18,8 +18,9 @@ def test_notebooks_exist_without_outputs():
         nb = nbformat.read(path, as_version=4)
         for cell in nb.cells:
             if cell.cell_type == "code":
-                assert not cell.get("outputs") and cell.get("execution_count") is None, \
+                assert not cell.get("outputs") and cell.get("execution_count") is None, (
                     f"{path.name}: commit notebooks without outputs"
+                )
 
 
 # Each notebook takes 15-60 s of CPU (mostly compiling its filters); together about 3 minutes of CPU,
@@ -32,13 +33,15 @@ def test_notebook_executes(path):
         if cell.cell_type == "code":
             assert not cell.get("outputs"), f"{path.name}: commit notebooks without outputs"
             public = cell.source.replace("__", "").replace("._replace(", "")  # NamedTuple API
-            assert "gmjax._" not in cell.source and "._" not in public, \
+            assert "gmjax._" not in cell.source and "._" not in public, (
                 f"{path.name}: private name used: {cell.source[:80]}"
+            )
     env_backend = os.environ.get("MPLBACKEND")
     os.environ["MPLBACKEND"] = "Agg"
     try:
-        client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                                         resources={"metadata": {"path": str(path.parent)}})
+        client = nbclient.NotebookClient(
+            nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}
+        )
         client.execute()  # raises CellExecutionError on any failing cell
     finally:
         if env_backend is None:

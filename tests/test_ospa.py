@@ -58,8 +58,9 @@ def test_ospa_gospa_equal_bruteforce_reference(c, p):
         ref = gospa_ref(x[mx], y[my], c=c, p=p)
         for name in ("distance", "localisation", "missed", "false"):
             np.testing.assert_allclose(getattr(g, name)[i], ref[name], rtol=1e-10, atol=1e-9)
-        np.testing.assert_allclose(g.distance[i] ** p, g.localisation[i] + g.missed[i] + g.false[i],
-                                   rtol=1e-10, atol=1e-9)
+        np.testing.assert_allclose(
+            g.distance[i] ** p, g.localisation[i] + g.missed[i] + g.false[i], rtol=1e-10, atol=1e-9
+        )
     # vmap == loop (one pair through the unbatched function)
     o0 = metrics.ospa(X[0], Y[0], MX[0], MY[0], c=c, p=p)
     np.testing.assert_allclose(o0, o[0], rtol=1e-13)
@@ -118,6 +119,7 @@ def test_soft_gospa_is_gospa_at_binary_weights_and_differentiable():
 
 def _stonesoup_states(points, t):
     from stonesoup.types.state import State
+
     return [State(np.asarray(pt, float).reshape(-1, 1), timestamp=t) for pt in points]
 
 
@@ -152,8 +154,7 @@ def test_ospa_gospa_equal_stonesoup(c, p):
                 assert o[i] <= ref + 1e-12
                 n = max(len(xs), len(ys))
                 D = np.full((n, n), c)
-                D[: len(xs), : len(ys)] = np.minimum(
-                    np.linalg.norm(x[mx][:, None] - y[my][None], axis=-1), c)
+                D[: len(xs), : len(ys)] = np.minimum(np.linalg.norm(x[mx][:, None] - y[my][None], axis=-1), c)
                 r, k = scipy_lsa(D)
                 np.testing.assert_allclose(ref, (np.sum(D[r, k] ** p) / n) ** (1 / p), rtol=1e-12)
         if xs and ys:  # Stone Soup's GOSPA decomposition for empty sets has a sign quirk (negative counts)

@@ -35,8 +35,11 @@ def test_irregular_dt_kf_equals_closed_form_cv_kf():
     m0, P0 = np.array([0.0, 1.0, 0.0, -1.0]), np.diag([4.0, 1.0, 4.0, 1.0])
     zs = rng.normal(size=(T, 2)) * 3
     zs[4] = np.nan  # a missing measurement stays a NaN row: predict only
-    model = lib.state_space_model(lib.constant_velocity(2, q), lib.cartesian_position((0, 2), 4, R),
-                                  gmm.from_gaussian(jnp.asarray(m0), jnp.asarray(P0)))
+    model = lib.state_space_model(
+        lib.constant_velocity(2, q),
+        lib.cartesian_position((0, 2), 4, R),
+        gmm.from_gaussian(jnp.asarray(m0), jnp.asarray(P0)),
+    )
     inputs = inputs_from_times(times)
     _, infos = filters.run(filters.build_kf(model), jnp.asarray(zs), inputs)
     m, P, prev = m0, P0, 0.0
@@ -65,8 +68,11 @@ def test_irregular_dt_kf_equals_closed_form_cv_kf():
 
 def test_simulate_irregular_times_scales_process_noise_with_dt():
     q = 2.0
-    model = lib.state_space_model(lib.random_walk(1, q), lib.cartesian_position((0,), 1, 0.01),
-                                  gmm.from_gaussian(jnp.zeros(1), jnp.eye(1) * 1e-6))
+    model = lib.state_space_model(
+        lib.random_walk(1, q),
+        lib.cartesian_position((0,), 1, 0.01),
+        gmm.from_gaussian(jnp.zeros(1), jnp.eye(1) * 1e-6),
+    )
     times = np.array([0.5, 0.6, 3.6])
     sc = scenario_from_model(model, 3, inputs=inputs_from_times(times), name="rw")
     xs, zs, inp = jax.vmap(lambda k: simulate(sc, k))(jax.random.split(jax.random.PRNGKey(0), 20_000))
@@ -99,10 +105,13 @@ def test_control_input_f_x_u_t_matches_numpy_kf_and_old_models_still_work():
     def f(x, u, t):  # three positional parameters: a control input
         return a * x + b * u
 
-    model = StateSpaceModel(f=f, h=lambda x, t: x,
-                            process_noise=gmm.from_gaussian(jnp.zeros(1), q * jnp.eye(1)),
-                            measurement_noise=gmm.from_gaussian(jnp.zeros(1), r * jnp.eye(1)),
-                            prior=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)))
+    model = StateSpaceModel(
+        f=f,
+        h=lambda x, t: x,
+        process_noise=gmm.from_gaussian(jnp.zeros(1), q * jnp.eye(1)),
+        measurement_noise=gmm.from_gaussian(jnp.zeros(1), r * jnp.eye(1)),
+        prior=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)),
+    )
     inputs = StepInputs(t=jnp.arange(1, T + 1), control=jnp.asarray(us))
     for build in (filters.build_kf, filters.build_ekf, filters.build_ckf):
         _, infos = filters.run(build(model), jnp.asarray(zs), inputs)
@@ -138,8 +147,10 @@ def test_control_input_f_x_u_t_matches_numpy_kf_and_old_models_still_work():
 
 T_ANG = 30
 P0_ANG = np.diag([25.0, 1.0, 25.0, 1.0])
-MEASUREMENTS = {"bearing_range": lib.bearing_range((0, 2), (0.01, 1.0)),
-                "bearings_only": lib.bearings_only((0, 2), 0.01**2)}
+MEASUREMENTS = {
+    "bearing_range": lib.bearing_range((0, 2), (0.01, 1.0)),
+    "bearings_only": lib.bearings_only((0, 2), 0.01**2),
+}
 
 
 def _track(theta):
@@ -177,9 +188,14 @@ def _angle_filter(name, model):
         return filters.build_imm([model, wide], [[0.95, 0.05], [0.05, 0.95]], filter="ukf")
     if name == "pf":
         return filters.build_pf(model, 4000)
-    build = {"ekf": filters.build_ekf, "ukf": lambda m: filters.build_ukf(m, 1.0, 2.0, 0.0),
-             "ckf": filters.build_ckf, "ghkf": filters.build_ghkf, "sgkf": filters.build_sgkf,
-             "sckf": filters.build_sckf}[name]
+    build = {
+        "ekf": filters.build_ekf,
+        "ukf": lambda m: filters.build_ukf(m, 1.0, 2.0, 0.0),
+        "ckf": filters.build_ckf,
+        "ghkf": filters.build_ghkf,
+        "sgkf": filters.build_sgkf,
+        "sckf": filters.build_sckf,
+    }[name]
     return build(model)
 
 
@@ -206,8 +222,9 @@ FILTERS = ["ekf", "ukf", "ckf", "ghkf", "sgkf", "sckf", "gsf", "imm", "pf"]
 
 
 @pytest.mark.parametrize("filter_name", FILTERS)
-@pytest.mark.parametrize("meas_name", [
-    "bearing_range", pytest.param("bearings_only", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "meas_name", ["bearing_range", pytest.param("bearings_only", marks=pytest.mark.slow)]
+)
 def test_every_filter_is_unaffected_by_the_pi_crossing(meas_name, filter_name):
     cross, rotated = _angle_errors(meas_name, filter_name)
     if filter_name == "pf":  # the rotated run draws different process noise: Monte Carlo spread

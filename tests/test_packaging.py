@@ -24,8 +24,11 @@ def test_py_typed_marker_is_in_the_package():
 
 
 def _public_modules():
-    names = [m.name for m in pkgutil.walk_packages(gmjax.__path__, "gmjax.")
-             if not any(part.startswith("_") for part in m.name.split(".")) and m.name != "gmjax.cli"]
+    names = [
+        m.name
+        for m in pkgutil.walk_packages(gmjax.__path__, "gmjax.")
+        if not any(part.startswith("_") for part in m.name.split(".")) and m.name != "gmjax.cli"
+    ]
     return ["gmjax", *names]
 
 
@@ -59,8 +62,13 @@ def test_public_api_is_fully_annotated():
     missing = {}
     for qualname, fn in callables.items():
         sig = inspect.signature(fn)
-        args = [p for p, v in sig.parameters.items()
-                if v.annotation is inspect.Parameter.empty and p not in ("self", "cls")]
+        args = [
+            p
+            for p, v in sig.parameters.items()
+            if v.annotation is inspect.Parameter.empty and p not in ("self", "cls")
+        ]
         if args or sig.return_annotation is inspect.Signature.empty:
-            missing[qualname] = args + (["return"] if sig.return_annotation is inspect.Signature.empty else [])
+            missing[qualname] = args + (
+                ["return"] if sig.return_annotation is inspect.Signature.empty else []
+            )
     assert not missing, f"{len(missing)} public callables lack annotations: {missing}"

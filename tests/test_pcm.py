@@ -32,8 +32,11 @@ K = 12  # one capacity throughout so compiled kernels are shared
 CASES = {
     "unimodal": ([0.3, 0.1, 0.4, 0.2], [1, 1.5, 2, 3], [1, 1.2, 0.5, 0.8]),
     "bimodal": ([0.3, 0.1, 0.4, 0.2], [0.5, 2, 3.5, 4], [1, 1.2, 0.5, 0.8]),
-    "multimodal": ([0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06], [0.5, 2, 3.5, 4, 5, -1, 0, 1],
-                   [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3]),
+    "multimodal": (
+        [0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06],
+        [0.5, 2, 3.5, 4, 5, -1, 0, 1],
+        [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3],
+    ),
 }
 
 
@@ -116,8 +119,9 @@ def test_cluster_ise_equals_numerical_integration_1d(method):
     # soft memberships too (the relaxation uses the same formula)
     A_soft = jax.nn.softmax(jax.random.normal(jax.random.PRNGKey(1), (K, K)), axis=1)
     merged_s = merge_membership(gm, A_soft, method)
-    np.testing.assert_allclose(cluster_ise(gm, A_soft, merged_s), _grid_ise_1d(gm, A_soft, merged_s),
-                               rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(
+        cluster_ise(gm, A_soft, merged_s), _grid_ise_1d(gm, A_soft, merged_s), rtol=1e-7, atol=1e-12
+    )
 
 
 def test_cluster_ise_equals_numerical_integration_2d():
@@ -131,9 +135,14 @@ def test_cluster_ise_equals_numerical_integration_2d():
     h = (g[1] - g[0]) ** 2
 
     def wpdfs(g):
-        return np.stack([
-            multivariate_normal(np.asarray(g.means[k]), np.asarray(g.covs[k])).pdf(X)
-            * float(g.weights[k] * g.mask[k]) for k in range(g.capacity)], axis=1)
+        return np.stack(
+            [
+                multivariate_normal(np.asarray(g.means[k]), np.asarray(g.covs[k])).pdf(X)
+                * float(g.weights[k] * g.mask[k])
+                for k in range(g.capacity)
+            ],
+            axis=1,
+        )
 
     comp, qcomp = wpdfs(gm), wpdfs(merged)
     numeric = ((comp @ np.asarray(A) - qcomp) ** 2).sum(0) * h
@@ -146,16 +155,33 @@ def test_cluster_ise_equals_numerical_integration_2d():
 def test_hard_eise_matches_reference(name, seed000):
     gm = case(name)
     w, m, P = case_np(name)
-    opts = (dict(method="ci", regularizer="exp", ise_scale=0.5, triangular=False, rule="split")
-            if seed000 else
-            dict(method="moment", regularizer="log10", ise_scale=1.0, triangular=True, rule="absorb"))
+    opts = (
+        dict(method="ci", regularizer="exp", ise_scale=0.5, triangular=False, rule="split")
+        if seed000
+        else dict(method="moment", regularizer="log10", ise_scale=1.0, triangular=True, rule="absorb")
+    )
     for lam in (1.0, 2.0, 3.0, 4.0):
         labels = gauss_cluster(gm, lam, triangular=opts["triangular"], subset_rule=opts["rule"]).labels
-        e, merged, n = hard_eise(gm, labels, alpha=0.01, method=opts["method"],
-                                 regularizer=opts["regularizer"], ise_scale=opts["ise_scale"])
+        e, merged, n = hard_eise(
+            gm,
+            labels,
+            alpha=0.01,
+            method=opts["method"],
+            regularizer=opts["regularizer"],
+            ise_scale=opts["ise_scale"],
+        )
         *_, clusters, e_ref = ref.reduce_fixed(
-            w, m, P, lam, merge=opts["method"], triangular=opts["triangular"],
-            subset_rule=opts["rule"], alpha=0.01, reg=opts["regularizer"], ise_scale=opts["ise_scale"])
+            w,
+            m,
+            P,
+            lam,
+            merge=opts["method"],
+            triangular=opts["triangular"],
+            subset_rule=opts["rule"],
+            alpha=0.01,
+            reg=opts["regularizer"],
+            ise_scale=opts["ise_scale"],
+        )
         assert float(e) == pytest.approx(e_ref, rel=1e-10, abs=1e-15)
         assert int(n) == len(clusters)
 
@@ -196,8 +222,7 @@ def test_relaxed_eise_gradient_matches_finite_differences():
 def test_relaxation_tends_to_hard_eise_at_grid_points():
     gm = case("bimodal")
     grid, labels, counts = _grid_for(gm)
-    soft_fn = jax.jit(lambda lam: relaxed_eise(lam, gm, grid, labels, counts, temperature=1e-3,
-                                               alpha=0.01))
+    soft_fn = jax.jit(lambda lam: relaxed_eise(lam, gm, grid, labels, counts, temperature=1e-3, alpha=0.01))
     for k in (0, 4, 10):
         hard, _, _ = hard_eise(gm, labels[k], alpha=0.01)
         soft = soft_fn(grid[k])
@@ -210,8 +235,9 @@ NEWTON_TOL = 1e-9  # relative: Newton's hard EISE may exceed the grid's best onl
 @pytest.mark.parametrize("name", list(CASES))
 def test_newton_no_worse_than_grid_on_static_cases(name):
     gm = case(name)
-    res = search_confidence(gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8,
-                            temperature=0.2, tol=1e-6, alpha=0.01)
+    res = search_confidence(
+        gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6, alpha=0.01
+    )
     assert bool(jnp.isfinite(res.lam_newton)) and 1.0 <= float(res.lam_newton) <= 3.0
     assert int(res.iterations) >= 1
     assert float(res.eise_newton) <= float(res.eise_grid) * (1 + NEWTON_TOL)
@@ -225,8 +251,9 @@ def test_newton_no_worse_than_grid_on_static_cases(name):
 def test_search_grid_matches_numpy_reference():
     w, m, P = case_np("multimodal")
     gm = case("multimodal")
-    res = search_confidence(gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=0,
-                            temperature=0.2, tol=1e-6, alpha=0.001)
+    res = search_confidence(
+        gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=0, temperature=0.2, tol=1e-6, alpha=0.001
+    )
     lam_ref, (_, _, _, _, e_ref) = ref.pcm_grid(w, m, P, prune=False, grid=11)
     assert float(res.lam) == pytest.approx(lam_ref)
     assert float(res.eise) == pytest.approx(e_ref, rel=1e-10)
@@ -317,14 +344,17 @@ def test_pcm_gradients_finite_with_padding():
     assert np.all(np.isfinite(gm_)) and np.all(np.isfinite(gw))
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(lambda_range=(3.0, 1.0)), "lambda_range"),
-    (dict(merge="kl"), "merge"),
-    (dict(dims=(3,)), "dims"),
-    (dict(temperature=0.0), "temperature"),
-    (dict(rho=1.5), "rho"),
-    (dict(grid_size=1), "grid_size"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(lambda_range=(3.0, 1.0)), "lambda_range"),
+        (dict(merge="kl"), "merge"),
+        (dict(dims=(3,)), "dims"),
+        (dict(temperature=0.0), "temperature"),
+        (dict(rho=1.5), "rho"),
+        (dict(grid_size=1), "grid_size"),
+    ],
+)
 def test_pcm_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         pcm(case("unimodal"), **kwargs)
@@ -338,8 +368,17 @@ def test_gmrcm_fixed_lambda_matches_reference():
     for lam in (1.0, 2.0, 3.0, 4.0):
         out, state, info = gmrcm(case("multimodal"), lam=lam, alpha=0.3, large_factor=jnp.inf)
         ow, om, oP, clusters, e_ref = ref.reduce_fixed(
-            w, m, P, lam, merge="moment", triangular=True, subset_rule="absorb", alpha=0.3,
-            reg="log10", ise_scale=1.0)
+            w,
+            m,
+            P,
+            lam,
+            merge="moment",
+            triangular=True,
+            subset_rule="absorb",
+            alpha=0.3,
+            reg="log10",
+            ise_scale=1.0,
+        )
         assert float(info.cost) == pytest.approx(e_ref, rel=1e-10)
         assert int(info.n_out) == len(clusters)
         np.testing.assert_array_equal(state.low_count, 0)
@@ -362,8 +401,11 @@ def test_gmrcm_low_weight_rule_over_two_steps():
     assert float(info2.pruned_mass) == pytest.approx(0.005)
     assert float(jnp.sum(out2.weights)) == pytest.approx(1.0)
     # a component that recovers resets its count
-    out3, state3, _ = gmrcm(gm._replace(weights=jnp.asarray(np.r_[0.4, 0.3, 0.1, 0.2, np.zeros(K - 4)])),
-                            GMRCMState(jnp.ones(K, jnp.int32)), lam=1.0)
+    out3, state3, _ = gmrcm(
+        gm._replace(weights=jnp.asarray(np.r_[0.4, 0.3, 0.1, 0.2, np.zeros(K - 4)])),
+        GMRCMState(jnp.ones(K, jnp.int32)),
+        lam=1.0,
+    )
     np.testing.assert_array_equal(state3.low_count, 0)
 
 

@@ -68,8 +68,7 @@ def test_pcrb_step_is_eq4():
     D22 = mats[3] @ mats[3].T + 5 * np.eye(d)
     want = D22 - D12.T @ np.linalg.inv(J + D11) @ D12
     np.testing.assert_allclose(pcrb_step(J, D11, D12, D22), 0.5 * (want + want.T), rtol=1e-12)
-    np.testing.assert_allclose(jax.jit(pcrb_step)(J, D11, D12, D22), pcrb_step(J, D11, D12, D22),
-                               rtol=1e-13)
+    np.testing.assert_allclose(jax.jit(pcrb_step)(J, D11, D12, D22), pcrb_step(J, D11, D12, D22), rtol=1e-13)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -109,9 +108,12 @@ def test_pcrb_mc_linear_is_exact_and_chunk_masking_is_right():
 
 @pytest.mark.parametrize(
     "mode,propagator,rule",
-    [("small", "linear", "gh"), ("large", "sut", "smolyak"),
-     pytest.param("small", "sut", "smolyak", marks=pytest.mark.slow),
-     pytest.param("large", "linear", "gh", marks=pytest.mark.slow)],
+    [
+        ("small", "linear", "gh"),
+        ("large", "sut", "smolyak"),
+        pytest.param("small", "sut", "smolyak", marks=pytest.mark.slow),
+        pytest.param("large", "linear", "gh", marks=pytest.mark.slow),
+    ],
 )
 def test_pcrb_gmm_linear_system_equals_kalman(mode, propagator, rule):
     """Seed 002 eqs 76-78: no approximation error in the linear case, for both algorithms."""
@@ -121,9 +123,14 @@ def test_pcrb_gmm_linear_system_equals_kalman(mode, propagator, rule):
     prior_gm = split_repeated(model.prior, gauss_hermite_library(3, 0.5), [0, 1])  # 9 terms
     rule_ = gauss_hermite(2, 3) if rule == "gh" else smolyak(2, 2)
     cfg = GMMPCRBConfig(
-        num_components=6, mode=mode, propagator=propagator,
-        state_library=gauss_hermite_library(2, 0.5), noise_library=gauss_hermite_library(3, 0.6),
-        state_directions=(None,), noise_directions=(0, 1), kmeans_max_iter=20,
+        num_components=6,
+        mode=mode,
+        propagator=propagator,
+        state_library=gauss_hermite_library(2, 0.5),
+        noise_library=gauss_hermite_library(3, 0.6),
+        state_directions=(None,),
+        noise_directions=(0, 1),
+        kmeans_max_iter=20,
     )
     res = pcrb_gmm(model, prior_gm, rule_, 6, config=cfg)
     np.testing.assert_allclose(res.bound, kalman_covariances(F, H, Q, R, P0, 6), rtol=1e-10, atol=1e-12)
@@ -179,8 +186,13 @@ def test_pcrb_gmm_nonlinear_measurement_is_exact_and_jit_equals_padded():
     res = pcrb_gmm(model, prior_gm, gauss_hermite(1, 2), T, config=cfg)
     np.testing.assert_allclose(res.bound[:, 0, 0], _quadratic_measurement_bound(T), rtol=1e-10)
     # extra padded slots change nothing
-    res_pad = pcrb_gmm(model, mixture.pad(prior_gm, 4), gauss_hermite(1, 2), T,
-                       config=dataclasses.replace(cfg, num_components=7))
+    res_pad = pcrb_gmm(
+        model,
+        mixture.pad(prior_gm, 4),
+        gauss_hermite(1, 2),
+        T,
+        config=dataclasses.replace(cfg, num_components=7),
+    )
     np.testing.assert_allclose(res_pad.bound, res.bound, rtol=1e-12)
     # float32 run of the same computation
     m32 = _quadratic_measurement_model(dtype=jnp.float32)
@@ -236,12 +248,23 @@ def test_auto_switch_and_both_algorithms_match_numpy_references():
     assert bool(np.all(lo.info.kmeans_converged))
     w, m, v = split_1d(np.ones(1), np.zeros(1), np.ones(1), gh_library(8, 0.5))
     w, m, v = split_1d(w, m, v, gh_library(8, 0.5))
-    ref_large = pcrb_gmm_1d_numpy(_F, _FP, _HP, 10.0, 1.0, w, m, v, 1.0, T, K,
-                                  gh_library(16, 1 / 40), gh_library(8, 0.5))
+    ref_large = pcrb_gmm_1d_numpy(
+        _F, _FP, _HP, 10.0, 1.0, w, m, v, 1.0, T, K, gh_library(16, 1 / 40), gh_library(8, 0.5)
+    )
     np.testing.assert_allclose(lo.bound[:, 0, 0], ref_large, rtol=1e-9)
     gm0 = jax.tree_util.tree_map(lambda a: np.asarray(a[0]), hi.info.mixtures)  # p(x_0) after k-means
-    ref_small = pcrb_gmm_1d_small_numpy(_F, _FP, _HP, 10.0, 1.0, gm0.weights[gm0.mask],
-                                        gm0.means[gm0.mask, 0], gm0.covs[gm0.mask, 0, 0], 1.0, T)
+    ref_small = pcrb_gmm_1d_small_numpy(
+        _F,
+        _FP,
+        _HP,
+        10.0,
+        1.0,
+        gm0.weights[gm0.mask],
+        gm0.means[gm0.mask, 0],
+        gm0.covs[gm0.mask, 0, 0],
+        1.0,
+        T,
+    )
     np.testing.assert_allclose(hi.bound[:, 0, 0], ref_small, rtol=1e-9)
     thr = float(np.median(np.asarray(hi.info.metric)))
     mid = run(setup.prior_gm, None, dataclasses.replace(setup.config, threshold=thr))
@@ -249,8 +272,9 @@ def test_auto_switch_and_both_algorithms_match_numpy_references():
     # time convention in the GMM recursion: p(x_1) has mean E[f(x_0, 0)] = 8 cos(0) = 8
     x1 = jax.tree_util.tree_map(lambda a: a[1], lo.info.mixtures)
     np.testing.assert_allclose(mixture.mean(x1), [8.0], atol=1e-9)
-    Ex1sq = integrate.quad(lambda x: (x / 2 + 25 * x / (1 + x * x) + 8.0) ** 2 * norm.pdf(x),
-                           -40, 40)[0] + 10.0
+    Ex1sq = (
+        integrate.quad(lambda x: (x / 2 + 25 * x / (1 + x * x) + 8.0) ** 2 * norm.pdf(x), -40, 40)[0] + 10.0
+    )
     np.testing.assert_allclose(lo.info.D22[0, 0, 0], 0.1 + Ex1sq / 100, rtol=2e-3)
 
 
@@ -286,8 +310,11 @@ def test_from_state_space_model_shifts_the_time_index():
 
     g = mixture.from_gaussian
     ssm = StateSpaceModel(
-        f=lambda x, k: x * 0 + k, h=lambda x, k: x, process_noise=g(jnp.zeros(1), jnp.eye(1)),
-        measurement_noise=g(jnp.zeros(1), jnp.eye(1)), prior=g(jnp.zeros(1), jnp.eye(1)),
+        f=lambda x, k: x * 0 + k,
+        h=lambda x, k: x,
+        process_noise=g(jnp.zeros(1), jnp.eye(1)),
+        measurement_noise=g(jnp.zeros(1), jnp.eye(1)),
+        prior=g(jnp.zeros(1), jnp.eye(1)),
     )
     pm = from_state_space_model(ssm)
     assert float(pm.f(jnp.zeros(1), 0)[0]) == 1.0  # ssm's f(x_0, k=1)
@@ -300,8 +327,13 @@ def test_bad_inputs_raise():
     model = ungm()
     setup = ungm_gmm_setup(model, 4, prior_splits=1)
     with pytest.raises(ValueError, match="mode"):
-        pcrb_gmm(model, setup.prior_gm, gauss_hermite(1, 5), 2,
-                 config=dataclasses.replace(setup.config, mode="medium"))
+        pcrb_gmm(
+            model,
+            setup.prior_gm,
+            gauss_hermite(1, 5),
+            2,
+            config=dataclasses.replace(setup.config, mode="medium"),
+        )
     with pytest.raises(ValueError, match="rule"):
         pcrb_gmm(model, setup.prior_gm, gauss_hermite(2, 3), 2, config=setup.config)
     with pytest.raises(ValueError, match="Q"):
@@ -309,8 +341,13 @@ def test_bad_inputs_raise():
     with pytest.raises(ValueError, match="J0"):
         pcrb_mc(model._replace(prior=setup.prior_gm), 2, 10, key=jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="library"):
-        pcrb_gmm(model, setup.prior_gm, gauss_hermite(1, 5), 2,
-                 config=GMMPCRBConfig(num_components=4, mode="large"))
+        pcrb_gmm(
+            model,
+            setup.prior_gm,
+            gauss_hermite(1, 5),
+            2,
+            config=GMMPCRBConfig(num_components=4, mode="large"),
+        )
     with pytest.raises(ValueError, match="n_samples"):
         pcrb_mc(model, 2, 0, key=jax.random.PRNGKey(0))
 

@@ -79,28 +79,46 @@ def _h(x, n):
 
 def test_pcrb_mc_mixture_noise_within_one_percent_of_grid():
     T, P0 = 6, 1.0
-    model = PCRBModel(f=_f, h=_h, Q=_gm(QW, QM, QV), R=_gm(RW, RM, RV),
-                      prior=gmm.from_gaussian(jnp.zeros(1), jnp.full((1, 1), P0)))
+    model = PCRBModel(
+        f=_f,
+        h=_h,
+        Q=_gm(QW, QM, QV),
+        R=_gm(RW, RM, RV),
+        prior=gmm.from_gaussian(jnp.zeros(1), jnp.full((1, 1), P0)),
+    )
     res = pcrb_mc(model, T, 400_000, key=jax.random.PRNGKey(0), chunk_size=100_000, progress=False)
     grid = np.linspace(-40, 40, 8001)
     ref = grid_np.grid_pcrb_1d(
-        lambda x: _f(x, 0), lambda x: 0.5 + 2.0 * (1 - x**2) / (1 + x**2) ** 2, lambda x: 1 + x / 10.0,
+        lambda x: _f(x, 0),
+        lambda x: 0.5 + 2.0 * (1 - x**2) / (1 + x**2) ** 2,
+        lambda x: 1 + x / 10.0,
         lambda x: np.exp(-0.5 * x**2 / P0) / np.sqrt(2 * np.pi * P0),
         lambda w: grid_np.gm_pdf(w, QW, QM, QV),
-        grid_np.gm_score_information(QW, QM, QV), grid_np.gm_score_information(RW, RM, RV), grid, T, 1 / P0)
+        grid_np.gm_score_information(QW, QM, QV),
+        grid_np.gm_score_information(RW, RM, RV),
+        grid,
+        T,
+        1 / P0,
+    )
     rel = np.abs(np.asarray(res.bound[:, 0, 0]) / ref - 1)
     print("max relative deviation from the grid PCRB:", rel.max())
     assert rel.max() < 0.01, rel
     # the same model written as a StateSpaceModel (f maps x_{k-1} to x_k) gives the same bound
-    ssm = StateSpaceModel(f=lambda x, k: _f(x, k - 1), h=_h, process_noise=model.Q, measurement_noise=model.R,
-                          prior=model.prior)
+    ssm = StateSpaceModel(
+        f=lambda x, k: _f(x, k - 1), h=_h, process_noise=model.Q, measurement_noise=model.R, prior=model.prior
+    )
     res2 = pcrb_mc(ssm, T, 400_000, key=jax.random.PRNGKey(0), chunk_size=100_000, progress=False)
     np.testing.assert_allclose(res2.bound, res.bound, rtol=1e-10)
 
 
 def test_from_state_space_model_keeps_mixture_noises_and_pcrb_gmm_refuses_them():
-    ssm = StateSpaceModel(f=_f, h=_h, process_noise=_gm(QW, QM, QV), measurement_noise=_gm(RW, RM, RV),
-                          prior=gmm.from_gaussian(jnp.zeros(1), jnp.ones((1, 1))))
+    ssm = StateSpaceModel(
+        f=_f,
+        h=_h,
+        process_noise=_gm(QW, QM, QV),
+        measurement_noise=_gm(RW, RM, RV),
+        prior=gmm.from_gaussian(jnp.zeros(1), jnp.ones((1, 1))),
+    )
     pm = from_state_space_model(ssm)
     assert isinstance(pm.Q, GaussianMixture) and isinstance(pm.R, GaussianMixture)
     with pytest.raises(ValueError, match="pcrb_gmm"):

@@ -63,12 +63,16 @@ def test_kepler_state_transition_matrix_matches_finite_differences():
         h = 1e-3 if j < 3 else 1e-6
         e = np.zeros(6)
         e[j] = h
-        fd[:, j] = (np.asarray(prop(jnp.asarray(X0 + e), 600.0)) - np.asarray(prop(jnp.asarray(X0 - e), 600.0))) / (2 * h)
+        fd[:, j] = (
+            np.asarray(prop(jnp.asarray(X0 + e), 600.0)) - np.asarray(prop(jnp.asarray(X0 - e), 600.0))
+        ) / (2 * h)
     np.testing.assert_allclose(stm, fd, rtol=1e-6, atol=1e-8)
 
 
 def test_geodetic_site_and_radar_geometry():
-    np.testing.assert_allclose(satellite_pass.geodetic_to_ecef(0.0, 0.0, 0.0), [satellite_pass.WGS84_A, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(
+        satellite_pass.geodetic_to_ecef(0.0, 0.0, 0.0), [satellite_pass.WGS84_A, 0, 0], atol=1e-9
+    )
     np.testing.assert_allclose(satellite_pass.geodetic_to_ecef(90.0, 0.0, 0.0)[2], 6356.752314245, atol=1e-6)
     site = satellite_pass.geodetic_to_ecef(*satellite_pass.RADAR_SITE)
     # a point straight above the site (at t = 0, theta0 = 0) has elevation 90 deg

@@ -73,7 +73,9 @@ def test_resampler_structure():
     n = len(W_TEST)
     keys = jax.random.split(jax.random.key(1), 200)
     nw = n * W_TEST
-    draws = {name: np.asarray(batched_resampler(name)(keys)) for name in ("systematic", "residual", "stratified")}
+    draws = {
+        name: np.asarray(batched_resampler(name)(keys)) for name in ("systematic", "residual", "stratified")
+    }
     for i in range(len(keys)):
         c_sys = np.bincount(draws["systematic"][i], minlength=n)
         assert np.all((c_sys == np.floor(nw)) | (c_sys == np.ceil(nw)))
@@ -100,9 +102,15 @@ def _kf_reference(zs):
     return jax.jit(lambda z: F.run(kf, z))(zs)
 
 
-@pytest.mark.parametrize("name", ["systematic", pytest.param("multinomial", marks=pytest.mark.slow),
-                                  pytest.param("stratified", marks=pytest.mark.slow),
-                                  pytest.param("residual", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "systematic",
+        pytest.param("multinomial", marks=pytest.mark.slow),
+        pytest.param("stratified", marks=pytest.mark.slow),
+        pytest.param("residual", marks=pytest.mark.slow),
+    ],
+)
 def test_pf_mean_converges_to_kf(name):
     """Replicated PFs: their average posterior mean is within 5 standard errors of the KF mean
     at every step (standard error from the spread of the replicas; the O(1/N) bias is far below
@@ -251,13 +259,17 @@ def test_jit_eager_vmap_loop():
     eager = go(keys[0])
     jitted = jax.jit(go)(keys[0])  # compiled once, reused in the loop below
     batched = jax.jit(jax.vmap(go))(keys)
-    np.testing.assert_allclose(np.asarray(eager[0].particles), np.asarray(jitted[0].particles), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(eager[0].particles), np.asarray(jitted[0].particles), rtol=1e-10, atol=1e-10
+    )
     np.testing.assert_allclose(np.asarray(eager[1].loglik), np.asarray(jitted[1].loglik), rtol=1e-10)
     np.testing.assert_allclose(np.asarray(eager[1].mean), np.asarray(jitted[1].mean), rtol=1e-10, atol=1e-10)
     jgo = jax.jit(go)
     for i in range(3):
         one = jgo(keys[i])
-        np.testing.assert_allclose(np.asarray(one[0].particles), np.asarray(batched[0].particles[i]), rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(
+            np.asarray(one[0].particles), np.asarray(batched[0].particles[i]), rtol=1e-10, atol=1e-10
+        )
         np.testing.assert_allclose(np.asarray(one[1].loglik), np.asarray(batched[1].loglik[i]), rtol=1e-10)
 
 
@@ -341,13 +353,18 @@ def test_vmap_over_params_sets():
     p2 = p1._replace(model=p1.model._replace(process_noise=q2), ess_threshold=jnp.asarray(0.5))
     key = jax.random.key(11)
     go = jax.jit(lambda p: F.run(flt, zs, key=key, params=p))
-    batched_states, batched_infos = jax.jit(jax.vmap(lambda p: F.run(flt, zs, key=key, params=p)))(_stack(p1, p2))
+    batched_states, batched_infos = jax.jit(jax.vmap(lambda p: F.run(flt, zs, key=key, params=p)))(
+        _stack(p1, p2)
+    )
     for i, p in enumerate((p1, p2)):
         states, infos = go(p)
-        np.testing.assert_allclose(np.asarray(batched_states.particles[i]), np.asarray(states.particles),
-                                   rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(
+            np.asarray(batched_states.particles[i]), np.asarray(states.particles), rtol=1e-10, atol=1e-10
+        )
         np.testing.assert_allclose(np.asarray(batched_infos.loglik[i]), np.asarray(infos.loglik), rtol=1e-10)
-        np.testing.assert_allclose(np.asarray(batched_infos.mean[i]), np.asarray(infos.mean), rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(
+            np.asarray(batched_infos.mean[i]), np.asarray(infos.mean), rtol=1e-10, atol=1e-10
+        )
     assert not np.allclose(np.asarray(batched_infos.loglik[0]), np.asarray(batched_infos.loglik[1]))
 
 
@@ -361,8 +378,9 @@ def test_one_step_loglik_gradient_wrt_process_noise():
 
     def loglik(q01):
         covs = flt.params.model.process_noise.covs.at[0, 0, 1].set(q01).at[0, 1, 0].set(q01)
-        p = flt.params._replace(model=flt.params.model._replace(
-            process_noise=flt.params.model.process_noise._replace(covs=covs)))
+        p = flt.params._replace(
+            model=flt.params.model._replace(process_noise=flt.params.model.process_noise._replace(covs=covs))
+        )
         return F.run(flt, zs, key=key, params=p)[1].loglik.sum()
 
     q01, eps = 0.02, 1e-5

@@ -52,8 +52,16 @@ def test_single_target_without_clutter_equals_kalman_filter(linear):
     padded = np.full((T, 3, 2), np.nan)
     padded[np.arange(T), rng.integers(0, 3, T)] = zs  # the one measurement in a random slot
     initial = _gm([1.0], m0[None], P0[None])
-    f = mt.gm_phd(model, birth=_no_birth(), survival_prob=1.0, detection_prob=1.0, clutter_rate=0.0,
-                  clutter_density=1e-6, capacity=4, initial=initial)
+    f = mt.gm_phd(
+        model,
+        birth=_no_birth(),
+        survival_prob=1.0,
+        detection_prob=1.0,
+        clutter_rate=0.0,
+        clutter_density=1e-6,
+        capacity=4,
+        initial=initial,
+    )
     states, infos = jax.jit(lambda z: mt.run(f, z))(jnp.asarray(padded))
     k_states, k_infos = filters_run(kalman_filter(F, H, Q, R, m0, P0), zs)
     slot = np.asarray(states.intensity.weights).argmax(-1)
@@ -73,11 +81,20 @@ def test_expected_cardinality_closed_forms(linear):
     """No measurement: N = (1 - P_D)(P_S N_prev + N_birth); one measurement: eq 27 by hand."""
     model = linear.model
     p_s, p_d, lam, dens = 0.9, 0.6, 3.0, 2.5e-7
-    birth = _gm([0.1, 0.25], [[250.0, 250, 0, 0], [-250, -250, 0, 0]],
-                np.stack([np.diag([100.0, 100, 25, 25])] * 2))
+    birth = _gm(
+        [0.1, 0.25], [[250.0, 250, 0, 0], [-250, -250, 0, 0]], np.stack([np.diag([100.0, 100, 25, 25])] * 2)
+    )
     prev = _gm([0.7, 1.3], [[0.0, 0, 1, 1], [500, 0, -1, 0]], np.stack([np.eye(4) * 30] * 2))
-    f = mt.gm_phd(model, birth=birth, survival_prob=p_s, detection_prob=p_d, clutter_rate=lam,
-                  clutter_density=dens, capacity=8, initial=prev)
+    f = mt.gm_phd(
+        model,
+        birth=birth,
+        survival_prob=p_s,
+        detection_prob=p_d,
+        clutter_rate=lam,
+        clutter_density=dens,
+        capacity=8,
+        initial=prev,
+    )
     t = StepInputs(t=jnp.asarray(1))
     state = f.predict(f.params, f.init(f.params, None), t)
     np.testing.assert_allclose(jnp.sum(state.intensity.weights), p_s * 2.0 + 0.35, rtol=1e-14)
@@ -90,8 +107,12 @@ def test_expected_cardinality_closed_forms(linear):
     _, info = f.update(f.params, state, jnp.asarray(np.vstack([z, np.full((3, 2), np.nan)])), t)
     F, H, Q, R = _linear_parts(model)
     w_pred = np.asarray(state.intensity.weights)
-    q = np.array([multivariate_normal(H @ np.asarray(m), H @ np.asarray(P) @ H.T + R).pdf(z)
-                  for m, P in zip(state.intensity.means, state.intensity.covs)])
+    q = np.array(
+        [
+            multivariate_normal(H @ np.asarray(m), H @ np.asarray(P) @ H.T + R).pdf(z)
+            for m, P in zip(state.intensity.means, state.intensity.covs)
+        ]
+    )
     det = p_d * w_pred * q / (lam * dens + np.sum(p_d * w_pred * q))
     np.testing.assert_allclose(info.extra["cardinality"], (1 - p_d) * w_pred.sum() + det.sum(), rtol=1e-12)
     log_lik = -(lam + p_d * w_pred.sum()) + np.log(lam * dens + np.sum(p_d * w_pred * q))
@@ -124,15 +145,17 @@ def test_jit_eager_vmap_loop_and_float32(linear):
         for a, b in zip(jax.tree_util.tree_leaves(single), jax.tree_util.tree_leaves(batched)):
             np.testing.assert_allclose(a, b[i], rtol=1e-9, atol=1e-9)
     eager_states, eager_infos = mt.run(f, zs[0])
-    np.testing.assert_allclose(eager_infos.extra["cardinality"], batched[1].extra["cardinality"][0],
-                               rtol=1e-10)
+    np.testing.assert_allclose(
+        eager_infos.extra["cardinality"], batched[1].extra["cardinality"][0], rtol=1e-10
+    )
     # float32: the same filter in single precision tracks the float64 cardinality
     sc32 = mt.vo_ma_linear(n_steps=10, max_measurements=24, dtype=jnp.float32)
     f32 = mt.gm_phd(sc32.model, **sc32.filter_kwargs(), capacity=12, merge_capacity=48)
     _, infos32 = jax.jit(lambda z: mt.run(f32, z))(zs[0].astype(jnp.float32))
     assert infos32.extra["cardinality"].dtype == jnp.float32
-    np.testing.assert_allclose(infos32.extra["cardinality"], eager_infos.extra["cardinality"],
-                               rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(
+        infos32.extra["cardinality"], eager_infos.extra["cardinality"], rtol=1e-3, atol=1e-4
+    )
 
 
 def test_agrees_with_stonesoup_gm_phd(linear):
@@ -158,17 +181,31 @@ def test_agrees_with_stonesoup_gm_phd(linear):
     f = mt.gm_phd(model, **linear.filter_kwargs(), capacity=30, merge_capacity=300)
     states, infos = jax.jit(lambda z: mt.run(f, z))(jnp.asarray(zs))
     b = linear.birth
-    ss = StoneSoupGMPHD(F, Q, H, R, list(zip(np.asarray(b.weights), np.asarray(b.means), np.asarray(b.covs))),
-                        survival_prob=linear.survival_prob, detection_prob=linear.detection_prob,
-                        clutter_intensity=linear.clutter_rate * linear.clutter_density, max_components=30)
+    ss = StoneSoupGMPHD(
+        F,
+        Q,
+        H,
+        R,
+        list(zip(np.asarray(b.weights), np.asarray(b.means), np.asarray(b.covs))),
+        survival_prob=linear.survival_prob,
+        detection_prob=linear.detection_prob,
+        clutter_intensity=linear.clutter_rate * linear.clutter_density,
+        max_components=30,
+    )
     scans = [z[~np.isnan(z[:, 0])] for z in zs]
     lf = local_filter_for(model, "kf")
-    step = jax.jit(lambda post, z, t: phd.update_intensity(
-        lf, f.params, phd.predict_intensity(lf, f.params, post, t), z, t))
+    step = jax.jit(
+        lambda post, z, t: phd.update_intensity(
+            lf, f.params, phd.predict_intensity(lf, f.params, post, t), z, t
+        )
+    )
     for k in range(1, len(scans)):
         post = jax.tree_util.tree_map(lambda a: a[k - 1], states.intensity)
-        comps = [(float(w), np.asarray(m), np.asarray(P))
-                 for w, m, P, live in zip(post.weights, post.means, post.covs, post.mask) if live]
+        comps = [
+            (float(w), np.asarray(m), np.asarray(P))
+            for w, m, P, live in zip(post.weights, post.means, post.covs, post.mask)
+            if live
+        ]
         upd_ss, _ = ss.step(comps, scans[k], k + 1)
         u = step(post, jnp.asarray(zs[k]), jnp.asarray(k + 1)).intensity
         live = np.asarray(u.mask)
@@ -211,8 +248,9 @@ def test_relaxed_vo_ma_at_zero_temperature_is_vo_ma():
     oh = np.argsort(-np.asarray(hard.weights))[:6]
     assert int(jnp.sum(hard.mask)) <= 6
     os_ = np.argsort(-np.asarray(soft.weights))
-    np.testing.assert_allclose(np.asarray(soft.weights)[os_], np.asarray(hard.weights)[oh] * scale,
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(soft.weights)[os_], np.asarray(hard.weights)[oh] * scale, rtol=1e-12
+    )
     np.testing.assert_allclose(np.asarray(soft.means)[os_], np.asarray(hard.means)[oh], atol=1e-12)
     np.testing.assert_allclose(np.asarray(soft.covs)[os_], np.asarray(hard.covs)[oh], atol=1e-12)
     np.testing.assert_allclose(info_s.pruned_mass, info_h.pruned_mass, rtol=1e-10)
@@ -223,13 +261,19 @@ def test_gradient_of_mean_gospa_wrt_thresholds_matches_finite_differences(linear
     sc = mt.vo_ma_linear(n_steps=5, max_measurements=16, clutter_rate=5.0)
     keys = jax.random.split(jax.random.PRNGKey(7), 2)
     samples = jax.vmap(mt.simulate, (None, 0))(sc, keys)
-    base = mt.gm_phd(sc.model, **sc.filter_kwargs(), capacity=10, merge_capacity=40,
-                     reducer=mt.RelaxedVoMa(1e-3, 4.0, 5e-4, 1.0, max_components=10))
+    base = mt.gm_phd(
+        sc.model,
+        **sc.filter_kwargs(),
+        capacity=10,
+        merge_capacity=40,
+        reducer=mt.RelaxedVoMa(1e-3, 4.0, 5e-4, 1.0, max_components=10),
+    )
 
     def loss(log_thresholds):
         T, U = jnp.exp(log_thresholds)
-        params = base.params._replace(reducer=base.params.reducer.__class__(
-            T, U, 5e-4, 1.0, max_components=10))
+        params = base.params._replace(
+            reducer=base.params.reducer.__class__(T, U, 5e-4, 1.0, max_components=10)
+        )
 
         def one(zs, truth, alive):
             states, _ = mt.run(base, zs, params=params)
@@ -291,7 +335,8 @@ def test_range_bearing_nonlinear_components_track(local):
     _, infos = jax.jit(lambda z: mt.run(f, z))(s.zs)
     est = infos.extra["estimates"][..., :2]
     o = jax.vmap(lambda e, em, x, a: mt.ospa(e, x, em, a, c=100.0, p=1.0))(
-        est, infos.extra["estimate_mask"], s.states[..., :2], s.alive)
+        est, infos.extra["estimate_mask"], s.states[..., :2], s.alive
+    )
     card_err = np.abs(np.asarray(infos.extra["n_estimates"]) - np.asarray(s.alive).sum(-1))
     assert float(np.mean(o[5:])) < 25.0
     assert float(np.mean(card_err[5:])) < 0.5

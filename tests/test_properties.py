@@ -26,8 +26,9 @@ from gmjax import mixture as mx
 
 K, D = 5, 2
 DTYPES = (jnp.float32, jnp.float64)
-SETTINGS = dict(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow],
-                derandomize=True)
+SETTINGS = dict(
+    max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+)
 
 
 def _tol(dtype):
@@ -75,8 +76,11 @@ def _assert_moments(gm, ref, dtype):
 
 
 def _finite(tree):
-    return all(np.all(np.isfinite(np.asarray(a))) for a in jax.tree_util.tree_leaves(tree)
-               if jnp.issubdtype(jnp.asarray(a).dtype, jnp.inexact))
+    return all(
+        np.all(np.isfinite(np.asarray(a)))
+        for a in jax.tree_util.tree_leaves(tree)
+        if jnp.issubdtype(jnp.asarray(a).dtype, jnp.inexact)
+    )
 
 
 # one compiled function per operation; jit caches per dtype, the shapes never change
@@ -95,10 +99,12 @@ _logpdf = jax.jit(mx.logpdf)
 @jax.jit
 def _grads(gm, x):
     """Gradients of a downstream scalar (log-density + moments) w.r.t. weights, means, covs."""
+
     def f(w, m, P):
         g = gm._replace(weights=w, means=m, covs=P)
         mu, cov = mx.moments(mx.normalize(g))
         return jnp.sum(mx.logpdf(g, x)) + jnp.sum(mu) + jnp.trace(cov)
+
     return jax.grad(f, argnums=(0, 1, 2))(gm.weights, gm.means, gm.covs)
 
 
@@ -131,9 +137,14 @@ def test_concat_adds_the_densities(a, b):
     mx.check(out)
     x = jnp.asarray([[0.3, 0.1], [-2.0, 1.0]], a.dtype)
     want = np.exp(np.asarray(_logpdf(a, x), np.float64)) + np.exp(np.asarray(_logpdf(b, x), np.float64))
-    np.testing.assert_allclose(np.exp(np.asarray(_logpdf(out, x), np.float64)), want, rtol=_tol(a.dtype)["rtol"])
-    np.testing.assert_allclose(float(mx.total_weight(out)),
-                               float(mx.total_weight(a)) + float(mx.total_weight(b)), rtol=_tol(a.dtype)["rtol"])
+    np.testing.assert_allclose(
+        np.exp(np.asarray(_logpdf(out, x), np.float64)), want, rtol=_tol(a.dtype)["rtol"]
+    )
+    np.testing.assert_allclose(
+        float(mx.total_weight(out)),
+        float(mx.total_weight(a)) + float(mx.total_weight(b)),
+        rtol=_tol(a.dtype)["rtol"],
+    )
 
 
 @settings(**SETTINGS)
@@ -172,7 +183,9 @@ def test_marginal_and_affine_transform_the_moments(gm, seed):
     m_out, c_out = mx.moments(out)
     np.testing.assert_allclose(np.asarray(m_out, np.float64), A @ mu + b, **tol)
     np.testing.assert_allclose(np.asarray(c_out, np.float64), A @ cov @ A.T, **tol)
-    np.testing.assert_allclose(float(mx.total_weight(out)), float(mx.total_weight(gm)), rtol=_tol(dtype)["rtol"])
+    np.testing.assert_allclose(
+        float(mx.total_weight(out)), float(mx.total_weight(gm)), rtol=_tol(dtype)["rtol"]
+    )
 
 
 @settings(**SETTINGS)
@@ -204,8 +217,9 @@ def _reducer_step(name):
         reducer = REDUCERS[name]()
 
         def f(means, gm):
-            out, _, info = reducer.reduce(gm._replace(means=means), reducer.init(gm.capacity),
-                                          key=jax.random.key(0))
+            out, _, info = reducer.reduce(
+                gm._replace(means=means), reducer.init(gm.capacity), key=jax.random.key(0)
+            )
             s = jnp.sum(jnp.where(out.mask, out.weights * jnp.sum(out.means**2, -1), 0.0))
             return s + jnp.sum(mx.logpdf(out, jnp.zeros((1, D), out.dtype))), (out, info)
 
@@ -236,13 +250,13 @@ def _reducer_properties(name, gm):
 
 
 @pytest.mark.parametrize(
-    "name", [n if n not in _HEAVY else pytest.param(n, marks=pytest.mark.slow) for n in sorted(REDUCERS)])
+    "name", [n if n not in _HEAVY else pytest.param(n, marks=pytest.mark.slow) for n in sorted(REDUCERS)]
+)
 def test_every_reducer_on_random_mixtures(name):
     """Weight conservation, moments where claimed, finite values and gradients, check() on the
     output, consistent labels, for random padding patterns in float32 and float64."""
 
-    @settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow],
-              derandomize=True)
+    @settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
     @given(gm=mixtures(capacity=6))
     def run(gm):
         _reducer_properties(name, gm)

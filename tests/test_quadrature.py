@@ -57,9 +57,7 @@ def test_unscented_degree3_count_and_cov_weight(d, params):
     assert rule.points.shape == (2 * d + 1, d)
     _assert_exact(rule, 3, d)
     # wc differs from wm only in the centre weight, by 1 - alpha^2 + beta (eq 27)
-    np.testing.assert_allclose(
-        float(jnp.sum(rule.wc)), 1.0 + 1.0 - alpha**2 + beta, rtol=1e-10, atol=1e-10
-    )
+    np.testing.assert_allclose(float(jnp.sum(rule.wc)), 1.0 + 1.0 - alpha**2 + beta, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(np.asarray(rule.wc[1:]), np.asarray(rule.wm[1:]))
 
 

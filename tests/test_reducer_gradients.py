@@ -64,8 +64,11 @@ def _directions(gm: GaussianMixture, cfg, seed: int):
         B = rng.normal(size=gm.covs.shape)
         dP = 0.5 * (B + np.swapaxes(B, -1, -2)) * live[:, None, None] * 0.1
         dc = jax.tree_util.tree_map(
-            lambda x: jnp.asarray(rng.normal() * np.isfinite(x) * 0.1 * max(1.0, abs(float(x))) if np.isfinite(x) else 0.0),
-            cfg)
+            lambda x: jnp.asarray(
+                rng.normal() * np.isfinite(x) * 0.1 * max(1.0, abs(float(x))) if np.isfinite(x) else 0.0
+            ),
+            cfg,
+        )
         out.append((jnp.asarray(dw), jnp.asarray(dm), jnp.asarray(dP), dc))
     return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *out)
 
@@ -80,7 +83,9 @@ def _checker(key):
     def check(params, dirs):
         value, grad = jax.value_and_grad(f)(params)
         fwd = jax.jacfwd(f)(params)
-        move = lambda s: jax.vmap(lambda d: f(jax.tree_util.tree_map(lambda p, q: p + s * q, params, d)))(dirs)  # noqa: E731
+        move = lambda s: jax.vmap(lambda d: f(jax.tree_util.tree_map(lambda p, q: p + s * q, params, d)))(  # noqa: E731
+            dirs
+        )
         return value, grad, fwd, move(H), move(-H)
 
     return check
@@ -92,15 +97,17 @@ MASK = GM0.mask
 RELAXED = {
     "prune_threshold_soft": lambda: reduction.PruneThreshold(threshold=0.12, temperature=0.03, mode="soft"),
     "prune_censored_soft": lambda: reduction.PruneCensored(rho=0.8, temperature=0.05, mode="soft"),
-    "pcm_soft": lambda: reduction.PCM(rho=0.9, lam=2.0, temperature=0.3, gate_temperature=0.05,
-                                      newton_steps=0, mode="soft"),
+    "pcm_soft": lambda: reduction.PCM(
+        rho=0.9, lam=2.0, temperature=0.3, gate_temperature=0.05, newton_steps=0, mode="soft"
+    ),
 }
 CASES = {**{n: f for n, f in REDUCERS.items()}, **RELAXED}
 _SLOW = {"pcm", "gmrcm", "brute_force", "williams", "refined", "pcm_soft"}
 
 
 @pytest.mark.parametrize(
-    "name", [n if n not in _SLOW else pytest.param(n, marks=pytest.mark.slow) for n in sorted(CASES)])
+    "name", [n if n not in _SLOW else pytest.param(n, marks=pytest.mark.slow) for n in sorted(CASES)]
+)
 def test_grad_and_jacfwd_match_finite_differences_with_padding(name):
     cfg = _float_config(CASES[name]())
     params = (GM0.weights, GM0.means, GM0.covs, cfg)
@@ -115,8 +122,10 @@ def test_grad_and_jacfwd_match_finite_differences_with_padding(name):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-8, atol=1e-10)
     # directional derivatives against central differences
     fd = (np.asarray(up) - np.asarray(down)) / (2 * H)
-    ad = sum(np.asarray(d).reshape(N_DIR, -1) @ np.asarray(g).reshape(-1)
-             for d, g in zip(jax.tree_util.tree_leaves(dirs), jax.tree_util.tree_leaves(grad)))
+    ad = sum(
+        np.asarray(d).reshape(N_DIR, -1) @ np.asarray(g).reshape(-1)
+        for d, g in zip(jax.tree_util.tree_leaves(dirs), jax.tree_util.tree_leaves(grad))
+    )
     np.testing.assert_allclose(ad, fd, rtol=1e-5, atol=1e-6 * max(1.0, abs(float(value))))
     # padded slots get no gradient
     pad = ~np.asarray(MASK)
@@ -129,7 +138,9 @@ def test_grad_and_jacfwd_match_finite_differences_with_padding(name):
 
 def test_cowa_gradient_with_identical_components_is_finite():
     """Two pairs of identical components: COWA's weight QP is singular (NaN gradients before)."""
-    gm = GaussianMixture.create([0.25, 0.25, 0.25, 0.25], [0.0, 0.0, 3.0, 3.0], [1.0, 1.0, 2.0, 2.0], capacity=6)
+    gm = GaussianMixture.create(
+        [0.25, 0.25, 0.25, 0.25], [0.0, 0.0, 3.0, 3.0], [1.0, 1.0, 2.0, 2.0], capacity=6
+    )
 
     def first_moment(means):
         out = reduction.cowa(gm._replace(means=means), 2)[0]
@@ -178,7 +189,8 @@ _NAN_SLOW = {"williams", "gmrcm_lam", "refined_lr"}
 
 
 @pytest.mark.parametrize(
-    "name", [n if n not in _NAN_SLOW else pytest.param(n, marks=pytest.mark.slow) for n in sorted(NAN_CASES)])
+    "name", [n if n not in _NAN_SLOW else pytest.param(n, marks=pytest.mark.slow) for n in sorted(NAN_CASES)]
+)
 def test_traced_nan_threshold_is_flagged_and_returns_the_input(name):
     gm = GaussianMixture.create([0.3, 0.2, 0.3, 0.2], [-1.0, 0.5, 3.0, 3.2], [1.0, 0.5, 2.0, 1.0], capacity=6)
     fine = {"pcm_rho": 0.9, "prune_censored": 0.9, "refined_lr": 1e-2, "prune_threshold": 0.25}.get(name, 0.5)
@@ -199,6 +211,7 @@ def test_traced_nan_threshold_is_flagged_and_returns_the_input(name):
     # the same compiled function with a valid threshold is not flagged
     _, _, ok = run(NAN_CASES[name](jnp.asarray(fine)), gm)
     assert not bool(ok.invalid_threshold)
+
     # gradients w.r.t. the mixture stay finite under the NaN threshold
     def second_moment(m):
         out = NAN_CASES[name](jnp.asarray(jnp.nan))(gm._replace(means=m))[0]

@@ -72,9 +72,14 @@ def test_merge_ci_optimized_matches_scipy():
     def f(lam):
         return np.trace(np.linalg.inv(np.einsum("k,kij->ij", lam, Pi)))
 
-    res = minimize(f, w / w.sum(), method="SLSQP", bounds=[(0, 1)] * 5,
-                   constraints=[{"type": "eq", "fun": lambda x: x.sum() - 1}],
-                   options={"ftol": 1e-15, "maxiter": 1000})
+    res = minimize(
+        f,
+        w / w.sum(),
+        method="SLSQP",
+        bounds=[(0, 1)] * 5,
+        constraints=[{"type": "eq", "fun": lambda x: x.sum() - 1}],
+        options={"ftol": 1e-15, "maxiter": 1000},
+    )
     _, _, C = R.merge_ci(gm, optimize=True, n_steps=30)
     assert np.trace(np.asarray(C)) <= f(w / w.sum())
     np.testing.assert_allclose(np.trace(np.asarray(C)), res.fun, rtol=1e-6)
@@ -149,8 +154,16 @@ REDUCERS = {
     "prune_top": lambda g, t=None: R.prune_top(g, NUM_OUT),
     "brute_force": lambda g, t=None: R.brute_force(g, NUM_OUT),
 }
-THRESHOLDED = ["runnalls", "west", "salmond", "williams", "cowa", "vo_ma", "prune_threshold",
-               "prune_censored"]
+THRESHOLDED = [
+    "runnalls",
+    "west",
+    "salmond",
+    "williams",
+    "cowa",
+    "vo_ma",
+    "prune_threshold",
+    "prune_censored",
+]
 CAP = 9
 
 
@@ -320,8 +333,14 @@ def test_ise_refine_improves():
 
 def test_configs_are_reducers():
     gm, _ = _mix(12, n=6, d=2, capacity=CAP)
-    cfgs = [R.Runnalls(num_out=3), R.West(num_out=3), R.Salmond(num_out=3),
-            R.KMeans(num_out=3), R.PruneTop(num_out=3), R.VoMa(prune_threshold=1e-3)]
+    cfgs = [
+        R.Runnalls(num_out=3),
+        R.West(num_out=3),
+        R.Salmond(num_out=3),
+        R.KMeans(num_out=3),
+        R.PruneTop(num_out=3),
+        R.VoMa(prune_threshold=1e-3),
+    ]
     for cfg in cfgs:
         leaves, tree = jax.tree_util.tree_flatten(cfg)
         cfg2 = jax.tree_util.tree_unflatten(tree, leaves)

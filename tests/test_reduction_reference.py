@@ -165,10 +165,14 @@ def test_cowa_weights_match_numpy():
         w_ref, act_ref = ref.cowa_weights(S, b, 1.0)
         w, act = optimal_weights(S, b, np.ones(n, bool), 1.0, n)
         np.testing.assert_allclose(np.asarray(w), w_ref, atol=1e-10)
-        res = minimize(lambda x: x @ S @ x - 2 * b @ x, np.full(n, 1 / n), method="SLSQP",
-                       bounds=[(0, None)] * n,
-                       constraints=[{"type": "eq", "fun": lambda x: x.sum() - 1}],
-                       options={"ftol": 1e-14, "maxiter": 500})
+        res = minimize(
+            lambda x: x @ S @ x - 2 * b @ x,
+            np.full(n, 1 / n),
+            method="SLSQP",
+            bounds=[(0, None)] * n,
+            constraints=[{"type": "eq", "fun": lambda x: x.sum() - 1}],
+            options={"ftol": 1e-14, "maxiter": 500},
+        )
         # the active-set answer is feasible and at least as good as SLSQP's when no weight is cut
         f = lambda x: x @ S @ x - 2 * b @ x  # noqa: E731
         if act_ref.all():

@@ -38,8 +38,9 @@ def batch(comps, capacity, dtype=jnp.float64):
     for b, (w, m, P) in enumerate(comps):
         n = len(w)
         W[b, :n], M[b, :n], C[b, :n], mask[b, :n] = w, m, P, True
-    return GaussianMixture(jnp.asarray(W, dtype), jnp.asarray(M, dtype), jnp.asarray(C, dtype),
-                           jnp.asarray(mask))
+    return GaussianMixture(
+        jnp.asarray(W, dtype), jnp.asarray(M, dtype), jnp.asarray(C, dtype), jnp.asarray(mask)
+    )
 
 
 def index(gm, b):
@@ -63,8 +64,7 @@ def scatter_padding(gm: GaussianMixture, capacity: int, seed: int) -> GaussianMi
     C[pos] = np.asarray(gm.covs)[live]
     mask[pos] = True
     dt = gm.weights.dtype
-    return GaussianMixture(jnp.asarray(W, dt), jnp.asarray(M, dt), jnp.asarray(C, dt),
-                           jnp.asarray(mask))
+    return GaussianMixture(jnp.asarray(W, dt), jnp.asarray(M, dt), jnp.asarray(C, dt), jnp.asarray(mask))
 
 
 def live_sorted(gm: GaussianMixture):

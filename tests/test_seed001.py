@@ -46,7 +46,9 @@ def test_bearings_never_wrap_and_noise_has_the_paper_std(scenario):
     xs = np.asarray(xs[1:])
     for i, (sx, sy) in enumerate(BEARINGS_SENSORS):
         true = np.arctan2(xs[:, 1] - sy, xs[:, 0] - sx)  # eq 51
-        np.testing.assert_allclose(np.asarray(scenario.model.h(jnp.asarray(xs[10]), 10))[i], true[10], rtol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(scenario.model.h(jnp.asarray(xs[10]), 10))[i], true[10], rtol=1e-12
+        )
         # sensor 1 sees y > s_y, sensor 2 sees y < s_y: no bearing crosses +-pi
         assert np.all(np.sign(xs[:, 1] - sy) == (1 if i == 0 else -1))
         resid = np.asarray(zs[:, i]) - true
@@ -62,8 +64,14 @@ def test_process_noise_reading_of_eq50(scenario):
     w, mu, var = BEARINGS_PROCESS_NOISE
     np.testing.assert_allclose(np.asarray(q.weights), w)
     g = np.array([dt**2 / 2, dt**2 / 2, dt, dt])
-    Q1 = np.array([[dt**3 / 3, 0, dt**2 / 2, 0], [0, dt**3 / 3, 0, dt**2 / 2],
-                   [dt**2 / 2, 0, dt, 0], [0, dt**2 / 2, 0, dt]])
+    Q1 = np.array(
+        [
+            [dt**3 / 3, 0, dt**2 / 2, 0],
+            [0, dt**3 / 3, 0, dt**2 / 2],
+            [dt**2 / 2, 0, dt, 0],
+            [0, dt**2 / 2, 0, dt],
+        ]
+    )
     for l in range(3):  # noqa: E741
         np.testing.assert_allclose(np.asarray(q.means[l]), mu[l] * g, rtol=1e-12)
         np.testing.assert_allclose(np.asarray(q.covs[l]), var[l] * Q1, rtol=1e-12)

@@ -46,8 +46,9 @@ def test_ct_transition_matches_expm_and_the_circle():
     # one axis of a uniform circular motion: x = c + R cos(w t + phi)
     c, R, phi = 300.0, 2500.0, 0.3
     t = np.arange(0, 201)
-    traj = np.stack([c + R * np.cos(w * t + phi), -R * w * np.sin(w * t + phi),
-                     -R * w**2 * np.cos(w * t + phi)], 1)
+    traj = np.stack(
+        [c + R * np.cos(w * t + phi), -R * w * np.sin(w * t + phi), -R * w**2 * np.cos(w * t + phi)], 1
+    )
     Fct = manoeuvring_target.ct_transition(w, dt)
     np.testing.assert_allclose(traj[1:], traj[:-1] @ Fct.T, rtol=1e-10, atol=1e-8)
 
@@ -88,8 +89,7 @@ def test_simulated_noise_and_prior_match_the_stated_mixtures():
     v = np.asarray(jax.vmap(lambda k: sc.sample_measurement_noise(k, 1))(keys))
     x0 = np.asarray(jax.vmap(sc.sample_initial)(keys))
     w = np.asarray(jax.vmap(lambda k: sc.sample_process_noise(k, 1))(keys))
-    for draws, gm in ((v, sc.model.measurement_noise), (x0, sc.model.prior),
-                      (w, sc.model.process_noise)):
+    for draws, gm in ((v, sc.model.measurement_noise), (x0, sc.model.prior), (w, sc.model.process_noise)):
         wts, mu, P = (np.asarray(a) for a in (gm.weights, gm.means, gm.covs))
         mean = wts @ mu
         dev = mu - mean
@@ -133,14 +133,20 @@ MU0 = np.array([0.55, 0.45])
 
 def _linear(Fm, Hm, dtype=jnp.float64, q=Q_GM, r=R_GM, prior=PRIOR):
     Fj, Hj = jnp.asarray(Fm, dtype), jnp.asarray(Hm, dtype)
-    return StateSpaceModel(lambda x, t: Fj @ x, lambda x, t: Hj @ x, GM.create(*q, dtype=dtype),
-                           GM.create(*r, dtype=dtype), GM.create(*prior, dtype=dtype))
+    return StateSpaceModel(
+        lambda x, t: Fj @ x,
+        lambda x, t: Hj @ x,
+        GM.create(*q, dtype=dtype),
+        GM.create(*r, dtype=dtype),
+        GM.create(*prior, dtype=dtype),
+    )
 
 
 def exact_jmls(zs, Fs, Hs, trans, mu0, prior, q, r):
     """NumPy: enumerate every (initial model, prior component, model / noise sequence) hypothesis."""
-    hyps = [(mu0[m] * w, np.array(mean), np.array(P), m)
-            for m in range(len(Fs)) for w, mean, P in zip(*prior)]
+    hyps = [
+        (mu0[m] * w, np.array(mean), np.array(P), m) for m in range(len(Fs)) for w, mean, P in zip(*prior)
+    ]
     out = []
     total_prev = sum(h[0] for h in hyps)
     for z in zs:
@@ -153,15 +159,16 @@ def exact_jmls(zs, Fs, Hs, trans, mu0, prior, q, r):
                     zhat = Hs[j] @ mp + mr
                     K = Pp @ Hs[j].T @ np.linalg.inv(S)
                     lik = scipy.stats.multivariate_normal.pdf(z, zhat, S)
-                    new.append((w * trans[i, j] * gq * br * lik, mp + K @ (z - zhat),
-                                Pp - K @ S @ K.T, j))
+                    new.append((w * trans[i, j] * gq * br * lik, mp + K @ (z - zhat), Pp - K @ S @ K.T, j))
         hyps = new
         total = sum(h[0] for h in hyps)
         ws = np.array([h[0] for h in hyps]) / total
         means = np.array([h[1] for h in hyps])
         mean = ws @ means
         dev = means - mean
-        cov = np.einsum("k,kij->ij", ws, np.array([h[2] for h in hyps])) + np.einsum("k,ki,kj->ij", ws, dev, dev)
+        cov = np.einsum("k,kij->ij", ws, np.array([h[2] for h in hyps])) + np.einsum(
+            "k,ki,kj->ij", ws, dev, dev
+        )
         probs = np.array([ws[[h[3] == j for h in hyps]].sum() for j in range(len(Fs))])
         out.append((mean, cov, probs, np.log(total / total_prev)))
         total_prev = total
@@ -177,8 +184,7 @@ def test_imm_gsf_equals_exact_jump_markov_posterior_and_ignores_padding():
     # per model after 2 steps: 2^2 model histories x 2 prior comps x (2 x 2)^2 noise pairs = 128
     results = []
     for capacity in (128, 160):
-        filt = build_imm_gsf(models, TRANS, local="ekf", reducer=None, capacity=capacity,
-                             initial_probs=MU0)
+        filt = build_imm_gsf(models, TRANS, local="ekf", reducer=None, capacity=capacity, initial_probs=MU0)
         _, infos = jax.jit(lambda zs, f=filt: F.run(f, zs))(jnp.asarray(ZS))
         assert not np.any(np.asarray(infos.flags.overflow))
         for k, (mean, cov, probs, loglik) in enumerate(ref):
@@ -193,11 +199,15 @@ def test_imm_gsf_equals_exact_jump_markov_posterior_and_ignores_padding():
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
-@pytest.mark.parametrize("reducer", [
-    PruneTop(num_out=4, capacity=4),
-    Runnalls(num_out=4, capacity=4),
-    GMRCM(alpha=0.3, capacity=4, grid_size=5, newton_steps=0),
-], ids=["gmrp", "runnalls", "gmrcm-stateful"])
+@pytest.mark.parametrize(
+    "reducer",
+    [
+        PruneTop(num_out=4, capacity=4),
+        Runnalls(num_out=4, capacity=4),
+        GMRCM(alpha=0.3, capacity=4, grid_size=5, newton_steps=0),
+    ],
+    ids=["gmrp", "runnalls", "gmrcm-stateful"],
+)
 def test_one_model_imm_gsf_is_the_gsf(reducer):
     sc = manoeuvring_target.tracking("step")
     model = manoeuvring_target.imm_models()[0]
@@ -233,8 +243,12 @@ def test_imm_gsf_with_gaussian_noises_and_no_switching_is_the_imm():
 
 
 def _seed003_filter(dtype=jnp.float64, capacity=4):
-    return build_imm_gsf(manoeuvring_target.imm_models(dtype=dtype), manoeuvring_target.TRANSITION,
-                         reducer=PruneTop(num_out=capacity, capacity=capacity), capacity=capacity)
+    return build_imm_gsf(
+        manoeuvring_target.imm_models(dtype=dtype),
+        manoeuvring_target.TRANSITION,
+        reducer=PruneTop(num_out=capacity, capacity=capacity),
+        capacity=capacity,
+    )
 
 
 def test_imm_gsf_jit_eager_vmap_loop_float32_and_missing_measurement():
@@ -249,8 +263,9 @@ def test_imm_gsf_jit_eager_vmap_loop_float32_and_missing_measurement():
     for i in range(3):  # vmap == Python loop over runs
         single = single_run(zs[i])
         np.testing.assert_allclose(batched.mean[i], single.mean, rtol=1e-12, atol=1e-9)
-        np.testing.assert_allclose(batched.extra["model_probs"][i], single.extra["model_probs"],
-                                   rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(
+            batched.extra["model_probs"][i], single.extra["model_probs"], rtol=1e-12, atol=1e-14
+        )
     # eager, step by step (no jit) == jit
     state = filt.init(filt.params)
     for k in range(2):
@@ -259,8 +274,9 @@ def test_imm_gsf_jit_eager_vmap_loop_float32_and_missing_measurement():
         prior_probs = np.exp(np.asarray(state.log_probs))
         state, info = filt.update(filt.params, state, zs[0, k], inputs)
         np.testing.assert_allclose(info.mean, batched.mean[0, k], rtol=1e-10, atol=1e-8)
-        np.testing.assert_allclose(info.extra["model_probs"], batched.extra["model_probs"][0, k],
-                                   rtol=1e-10, atol=1e-13)
+        np.testing.assert_allclose(
+            info.extra["model_probs"], batched.extra["model_probs"][0, k], rtol=1e-10, atol=1e-13
+        )
     # the NaN step is predict-only: log-likelihood 0, model probabilities = the predicted ones
     assert float(info.loglik) == 0.0
     np.testing.assert_allclose(info.extra["model_probs"], prior_probs, rtol=1e-12)
@@ -275,8 +291,9 @@ def test_imm_gsf_jit_eager_vmap_loop_float32_and_missing_measurement():
 
 def test_imm_gsf_grad_wrt_process_noise_matches_finite_difference():
     models = [_linear(F1, H1), _linear(F2, H2)]
-    filt = build_imm_gsf(models, TRANS, local="ekf", reducer=Runnalls(num_out=8, capacity=8),
-                         capacity=8, initial_probs=MU0)
+    filt = build_imm_gsf(
+        models, TRANS, local="ekf", reducer=Runnalls(num_out=8, capacity=8), capacity=8, initial_probs=MU0
+    )
     assert isinstance(filt.params, IMMGSFParams)
 
     def with_q(q):  # process-noise covariance entry (component 1, [1, 1]) of model 2
@@ -300,8 +317,13 @@ def test_imm_gsf_grad_wrt_process_noise_matches_finite_difference():
 def test_imm_gsf_jit_equals_eager_with_a_stateful_reducer_and_a_key():
     sc = manoeuvring_target.tracking("step")._replace(n_steps=3)
     _, zs, ts = simulate(sc, jax.random.key(11))
-    gm_filt = build_imm_gsf(manoeuvring_target.imm_models(), manoeuvring_target.TRANSITION, local="ekf",
-                            reducer=GMRCM(alpha=0.3, capacity=4, grid_size=5, newton_steps=0), capacity=4)
+    gm_filt = build_imm_gsf(
+        manoeuvring_target.imm_models(),
+        manoeuvring_target.TRANSITION,
+        local="ekf",
+        reducer=GMRCM(alpha=0.3, capacity=4, grid_size=5, newton_steps=0),
+        capacity=4,
+    )
     key = jax.random.key(4)
     _, jitted = jax.jit(lambda z, k: F.run(gm_filt, z, ts, key=k))(zs, key)
     k_init, k_steps = jax.random.split(key)  # the key stream of F.run
@@ -315,9 +337,11 @@ def test_imm_gsf_jit_equals_eager_with_a_stateful_reducer_and_a_key():
         np.testing.assert_allclose(info.loglik, jitted.loglik[k], rtol=1e-10)
         np.testing.assert_array_equal(state.modes.reducer_state.low_count.shape, (2, 4))
     assert jitted.extra["mode_reduction"].cost.shape == (3, 2)
-    np.testing.assert_allclose(jitted.reduction.cost,
-                               (jitted.extra["model_probs"] * jitted.extra["mode_reduction"].cost).sum(1),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        jitted.reduction.cost,
+        (jitted.extra["model_probs"] * jitted.extra["mode_reduction"].cost).sum(1),
+        rtol=1e-12,
+    )
 
 
 def test_imm_gsf_bad_input():

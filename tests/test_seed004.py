@@ -33,10 +33,17 @@ def _kl_scipy(gm):
     return integrate.quad(f, lo, hi, points=pts, limit=500, epsabs=1e-12, epsrel=1e-10)[0]
 
 
-@pytest.mark.parametrize("gm", [
-    _scaled(1, 0.21), _scaled(2, 1.0), _scaled(3, 0.096), _scaled(3, 3.0),
-    uwb_velocity.UWB_NOISES["x"]["process"], uwb_velocity.UWB_NOISES["y"]["measurement"],
-])
+@pytest.mark.parametrize(
+    "gm",
+    [
+        _scaled(1, 0.21),
+        _scaled(2, 1.0),
+        _scaled(3, 0.096),
+        _scaled(3, 3.0),
+        uwb_velocity.UWB_NOISES["x"]["process"],
+        uwb_velocity.UWB_NOISES["y"]["measurement"],
+    ],
+)
 def test_quadrature_kl_matches_scipy_adaptive_quadrature(gm):
     np.testing.assert_allclose(uwb_velocity.kl_to_moment_matched(gm), _kl_scipy(gm), rtol=1e-7, atol=1e-9)
 
@@ -45,14 +52,20 @@ def test_kl_is_zero_for_one_gaussian_and_mc_agrees_with_quadrature_within_its_st
     assert abs(uwb_velocity.kl_to_moment_matched(_scaled(1, 0.0))) < 1e-10
     for i, gm in enumerate([_scaled(1, 0.5), _scaled(3, 0.2), uwb_velocity.UWB_NOISES["y"]["process"]]):
         kl_q = uwb_velocity.kl_to_moment_matched(gm)
-        kl_mc, se = uwb_velocity.kl_to_moment_matched(gm, method="mc", key=jax.random.key(i), return_stderr=True)
+        kl_mc, se = uwb_velocity.kl_to_moment_matched(
+            gm, method="mc", key=jax.random.key(i), return_stderr=True
+        )
         assert se > 0 and abs(kl_mc - kl_q) < 4 * se, (kl_mc, kl_q, se)
 
 
 def test_kl_accepts_a_1d_gaussian_mixture():
     gm = _scaled(2, 0.4)
-    mix = gmm.GaussianMixture.create(gm.weights, np.array(gm.means)[:, None], np.array(gm.variances)[:, None, None])
-    assert uwb_velocity.kl_to_moment_matched(mix) == pytest.approx(uwb_velocity.kl_to_moment_matched(gm), rel=1e-12)
+    mix = gmm.GaussianMixture.create(
+        gm.weights, np.array(gm.means)[:, None], np.array(gm.variances)[:, None, None]
+    )
+    assert uwb_velocity.kl_to_moment_matched(mix) == pytest.approx(
+        uwb_velocity.kl_to_moment_matched(gm), rel=1e-12
+    )
 
 
 def test_paper_fig5_scales_give_kl_about_one_half():
@@ -90,7 +103,11 @@ def test_rwv_model_equals_the_validated_scenario_model():
     gm = _scaled(3, 0.7)
     a = uwb_velocity.synthetic(3, 0.7).model
     b = uwb_velocity.rwv_model(gm, gm)
-    for x, y in [(a.process_noise, b.process_noise), (a.measurement_noise, b.measurement_noise), (a.prior, b.prior)]:
+    for x, y in [
+        (a.process_noise, b.process_noise),
+        (a.measurement_noise, b.measurement_noise),
+        (a.prior, b.prior),
+    ]:
         for u, v in zip(x, y):
             np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-12, atol=1e-15)
     x = jnp.array([1.0, 2.0])
@@ -102,7 +119,8 @@ def test_labelled_simulator_draws_each_noise_from_its_labelled_cluster():
     gm = uwb_velocity.UWB_NOISES["x"]["process"], uwb_velocity.UWB_NOISES["x"]["measurement"]
     n_runs, T = 400, 50
     runs = jax.jit(jax.vmap(lambda k: uwb_velocity.simulate_labeled(*gm, k, n_steps=T)))(
-        jax.random.split(jax.random.key(3), n_runs))
+        jax.random.split(jax.random.key(3), n_runs)
+    )
     xs, zs, act = (np.asarray(a) for a in runs)
     Fm = np.array([[1.0, uwb_velocity.DT], [0.0, 1.0]])
     v = xs[:, 1:] - xs[:, :-1] @ Fm.T  # (N, T, 2)

@@ -27,14 +27,18 @@ def _ref_pdf_1d(x):
 
 def test_pdf_of_a_1d_mixture_refuses_an_ambiguous_vector_and_takes_points_as_n_by_1():
     # x of shape (2,) returned the density at the first point only
-    with pytest.raises(ValueError, match=r"x: expected one point \(1,\) or points \(n, 1\).*pass shape \(2, 1\)"):
+    with pytest.raises(
+        ValueError, match=r"x: expected one point \(1,\) or points \(n, 1\).*pass shape \(2, 1\)"
+    ):
         mx.pdf(G1, jnp.asarray([0.0, 1.0]))
     with pytest.raises(ValueError, match=r"x: expected"):
         jax.jit(mx.logpdf)(G1, jnp.asarray([0.0, 1.0]))  # a static check: also under jit
     pts = np.array([0.0, 1.0, 2.5])
     np.testing.assert_allclose(np.asarray(mx.pdf(G1, pts[:, None])), _ref_pdf_1d(pts), rtol=1e-12)
     np.testing.assert_allclose(float(mx.pdf(G1, pts[1:2])), _ref_pdf_1d(1.0), rtol=1e-12)
-    with pytest.raises(ValueError, match=r"x: expected one point \(2,\) or points \(n, 2\).*got shape \(3,\)"):
+    with pytest.raises(
+        ValueError, match=r"x: expected one point \(2,\) or points \(n, 2\).*got shape \(3,\)"
+    ):
         mx.logpdf(G2, jnp.zeros(3))
     with pytest.raises(ValueError, match=r"x: expected"):
         mx.component_logpdfs(G2, jnp.zeros((4, 2, 1)))
@@ -42,14 +46,18 @@ def test_pdf_of_a_1d_mixture_refuses_an_ambiguous_vector_and_takes_points_as_n_b
 
 def test_two_mixtures_of_different_dimensions_are_refused():
     for f in (metrics.ise, metrics.nise, metrics.l2_inner, metrics.cross_overlap, mx.concat):
-        with pytest.raises(ValueError, match=r"a, b: mixtures of different dimensions \(a is 1-D, b is 2-D\)"):
+        with pytest.raises(
+            ValueError, match=r"a, b: mixtures of different dimensions \(a is 1-D, b is 2-D\)"
+        ):
             f(G1, G2)
     with pytest.raises(ValueError, match=r"a, b: mixtures of different dimensions"):
         metrics.kl_mc(G1, G2, jax.random.key(0), 10)
     # same dimension: the closed form of two 1-D Gaussians, int N1 N2 = N(m1; m2, P1 + P2)
     a = GaussianMixture.create([1.0], [0.0], [1.0])
     b = GaussianMixture.create([1.0], [1.0], [2.0])
-    np.testing.assert_allclose(float(metrics.l2_inner(a, b)), stats.norm.pdf(0.0, 1.0, np.sqrt(3.0)), rtol=1e-12)
+    np.testing.assert_allclose(
+        float(metrics.l2_inner(a, b)), stats.norm.pdf(0.0, 1.0, np.sqrt(3.0)), rtol=1e-12
+    )
 
 
 def test_marginal_affine_and_gaussian_helpers_name_the_argument():
@@ -78,12 +86,16 @@ def test_marginal_affine_and_gaussian_helpers_name_the_argument():
 
 def test_run_refuses_measurements_of_the_wrong_dimension_naming_zs():
     kf = F.kalman_filter(np.eye(2), np.array([[1.0, 0.0]]), np.eye(2), np.eye(1), np.zeros(2), np.eye(2))
-    with pytest.raises(ValueError, match=r"zs: the filter's model measures m=1 values per step, but zs has shape \(4, 2\)"):
+    with pytest.raises(
+        ValueError, match=r"zs: the filter's model measures m=1 values per step, but zs has shape \(4, 2\)"
+    ):
         F.run(kf, jnp.zeros((4, 2)))
     model = mx.from_gaussian(jnp.zeros(2), jnp.eye(2))
     from gmjax.models import StateSpaceModel
 
-    ssm = StateSpaceModel(lambda x, t: x, lambda x, t: x[:1], model, GaussianMixture.create([1.0], [0.0], [1.0]), model)
+    ssm = StateSpaceModel(
+        lambda x, t: x, lambda x, t: x[:1], model, GaussianMixture.create([1.0], [0.0], [1.0]), model
+    )
     for filt in (F.build_kf(ssm), F.build_imm([ssm, ssm], [[0.9, 0.1], [0.1, 0.9]], filter="kf")):
         with pytest.raises(ValueError, match=r"zs: the filter's model measures m=1"):
             F.run(filt, jnp.zeros((4, 3)))

@@ -29,7 +29,8 @@ P0 = np.array([[1.0, 0.1], [0.1, 0.5]])
 def _linear_model():
     Fj, Hj = jnp.asarray(F), jnp.asarray(H)
     return StateSpaceModel(
-        f=lambda x, t: Fj @ x, h=lambda x, t: Hj @ x,
+        f=lambda x, t: Fj @ x,
+        h=lambda x, t: Hj @ x,
         process_noise=gmm.from_gaussian(jnp.zeros(2), jnp.asarray(Q)),
         measurement_noise=gmm.from_gaussian(jnp.zeros(1), jnp.asarray(R)),
         prior=gmm.from_gaussian(jnp.asarray(M0), jnp.asarray(P0)),
@@ -82,13 +83,13 @@ def test_rts_equals_batch_conditioning():
     # x_k = F^k x_0 + sum_j F^{k-j} v_j; build the joint covariance of x_{1:T}
     A = np.zeros((T * d, d + T * d))  # x_{1:T} = A @ [x_0, v_1..v_T]
     for k in range(1, T + 1):
-        A[(k - 1) * d:k * d, :d] = np.linalg.matrix_power(F, k)
+        A[(k - 1) * d : k * d, :d] = np.linalg.matrix_power(F, k)
         for j in range(1, k + 1):
-            A[(k - 1) * d:k * d, d + (j - 1) * d:d + j * d] = np.linalg.matrix_power(F, k - j)
+            A[(k - 1) * d : k * d, d + (j - 1) * d : d + j * d] = np.linalg.matrix_power(F, k - j)
     S0 = np.zeros((d + T * d, d + T * d))
     S0[:d, :d] = P0
     for j in range(T):
-        S0[d + j * d:d + (j + 1) * d, d + j * d:d + (j + 1) * d] = Q
+        S0[d + j * d : d + (j + 1) * d, d + j * d : d + (j + 1) * d] = Q
     mx = A[:, :d] @ M0
     Sx = A @ S0 @ A.T
     Hb = np.kron(np.eye(T), H)
@@ -101,7 +102,7 @@ def test_rts_equals_batch_conditioning():
     sm = rts_smoother(model, infos.mean, infos.cov, method="ekf")
     np.testing.assert_allclose(sm.mean.reshape(-1), mean, atol=1e-10)
     for k in range(T):
-        np.testing.assert_allclose(sm.cov[k], cov[k * d:(k + 1) * d, k * d:(k + 1) * d], atol=1e-10)
+        np.testing.assert_allclose(sm.cov[k], cov[k * d : (k + 1) * d, k * d : (k + 1) * d], atol=1e-10)
 
 
 def test_sigma_point_rts_linear_equals_rts_and_jit():
@@ -162,7 +163,8 @@ RV = np.array([0.5, 0.5])
 
 def _bimodal_model():
     return StateSpaceModel(
-        f=lambda x, t: A1 * x, h=lambda x, t: x,
+        f=lambda x, t: A1 * x,
+        h=lambda x, t: x,
         process_noise=gmm.from_gaussian(jnp.zeros(1), jnp.full((1, 1), Q1)),
         measurement_noise=GaussianMixture.create(RW, RM[:, None], RV[:, None, None]),
         prior=gmm.from_gaussian(jnp.zeros(1), jnp.full((1, 1), 4.0)),
@@ -208,8 +210,14 @@ def test_gaussian_sum_smoother_matches_grid():
     grid = np.linspace(-40, 40, 4001)
     npdf = lambda x, v: np.exp(-0.5 * x**2 / v) / np.sqrt(2 * np.pi * v)  # noqa: E731
     filt_g, sm_g = grid_np.grid_filter_smoother(
-        grid, lambda x: npdf(x, 4.0), lambda x: A1 * x, lambda x: x, lambda v: npdf(v, Q1),
-        lambda w: grid_np.gm_pdf(w, RW, RM, RV), zs)
+        grid,
+        lambda x: npdf(x, 4.0),
+        lambda x: A1 * x,
+        lambda x: x,
+        lambda v: npdf(v, Q1),
+        lambda w: grid_np.gm_pdf(w, RW, RM, RV),
+        zs,
+    )
     grid_filt_mean = filt_g @ grid
     grid_sm_mean = sm_g @ grid
     grid_sm_var = sm_g @ grid**2 - grid_sm_mean**2

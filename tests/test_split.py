@@ -39,9 +39,7 @@ def _random_spd(rng, d):
 
 
 def _lib_pdf(lib, x):
-    return sum(
-        w * norm.pdf(x, m, float(lib.sigma)) for w, m in zip(lib.weights, lib.means)
-    )
+    return sum(w * norm.pdf(x, m, float(lib.sigma)) for w, m in zip(lib.weights, lib.means))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -54,7 +52,11 @@ def test_gauss_hermite_library_matches_normal_moments_to_order_2m_minus_1(num, s
     lib = gauss_hermite_library(num, sigma)
     assert lib.size == num
     np.testing.assert_allclose(lib.weights.sum(), 1.0, rtol=1e-14)
-    np.testing.assert_allclose(float(lib.sigma) ** 2, 1 - (lib.means[-1] / np.polynomial.hermite_e.hermegauss(num)[0][-1]) ** 2, rtol=1e-12)
+    np.testing.assert_allclose(
+        float(lib.sigma) ** 2,
+        1 - (lib.means[-1] / np.polynomial.hermite_e.hermegauss(num)[0][-1]) ** 2,
+        rtol=1e-12,
+    )
     orders = list(range(0, 2 * num))
     got = library_moments(lib, orders)
     want = np.array([_normal_moment(p) for p in orders])
@@ -71,8 +73,14 @@ def test_gauss_hermite_library_matches_normal_moments_to_order_2m_minus_1(num, s
 def test_library_l2_error_matches_scipy_quadrature_and_closed_form(lib_fn):
     lib = lib_fn()
     E = library_l2_error(lib)
-    val, _ = integrate.quad(lambda x: (norm.pdf(x) - _lib_pdf(lib, x)) ** 2, -np.inf, np.inf,
-                            limit=500, epsabs=1e-18, epsrel=1e-10)
+    val, _ = integrate.quad(
+        lambda x: (norm.pdf(x) - _lib_pdf(lib, x)) ** 2,
+        -np.inf,
+        np.inf,
+        limit=500,
+        epsabs=1e-18,
+        epsrel=1e-10,
+    )
     np.testing.assert_allclose(E, val, rtol=1e-5, atol=1e-17)
     # closed form of eq 13 (c - 2 b^T w + w^T G w)
     w, mu, s = lib.weights, lib.means, float(lib.sigma)
@@ -103,8 +111,12 @@ def test_uniform_library_weights_are_l2_optimal(sigma):
     c = 1 / (2 * math.sqrt(math.pi))
     obj = lambda v: c - 2 * b @ v + v @ G @ v  # noqa: E731
     res = optimize.minimize(
-        obj, np.full(len(mu), 1 / len(mu)), jac=lambda v: -2 * b + 2 * G @ v, method="SLSQP",
-        bounds=[(0, None)] * len(mu), constraints=[{"type": "eq", "fun": lambda v: v.sum() - 1}],
+        obj,
+        np.full(len(mu), 1 / len(mu)),
+        jac=lambda v: -2 * b + 2 * G @ v,
+        method="SLSQP",
+        bounds=[(0, None)] * len(mu),
+        constraints=[{"type": "eq", "fun": lambda v: v.sum() - 1}],
         options={"ftol": 1e-16, "maxiter": 2000},
     )
     assert obj(w) <= res.fun + 1e-12
@@ -233,9 +245,7 @@ def test_split_repeated_1d_benchmark_prior_has_4096_terms_with_unit_moments():
     # repeated Gauss-Hermite splits keep the higher moments of N(0, 1) too
     w, m, v = (np.asarray(a).reshape(4096) for a in (gm.weights, gm.means, gm.covs))
     np.testing.assert_allclose(w @ (m**4 + 6 * m**2 * v + 3 * v**2), 3.0, rtol=1e-11)
-    np.testing.assert_allclose(
-        w @ (m**6 + 15 * m**4 * v + 45 * m**2 * v**2 + 15 * v**3), 15.0, rtol=1e-11
-    )
+    np.testing.assert_allclose(w @ (m**6 + 15 * m**4 * v + 45 * m**2 * v**2 + 15 * v**3), 15.0, rtol=1e-11)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -279,8 +289,10 @@ def test_refine_splits_selected_slots_and_matches_manual_concat():
     out, info = refine(gm, sel, lib, direction=1)
     assert int(info.n_split) == 2 and int(info.n_out) == 7 and not bool(info.overflow)
     manual = mixture.concat(
-        mixture.concat(split_gaussian(gm.weights[0], gm.means[0], gm.covs[0], lib, 1),
-                       GaussianMixture(gm.weights[1:2], gm.means[1:2], gm.covs[1:2], gm.mask[1:2])),
+        mixture.concat(
+            split_gaussian(gm.weights[0], gm.means[0], gm.covs[0], lib, 1),
+            GaussianMixture(gm.weights[1:2], gm.means[1:2], gm.covs[1:2], gm.mask[1:2]),
+        ),
         split_gaussian(gm.weights[2], gm.means[2], gm.covs[2], lib, 1),
     )
     x = rng.standard_normal((20, 2))

@@ -84,7 +84,9 @@ def test_soft_split_gate():
     with pytest.raises(ValueError, match="temperature"):
         T.soft_split_gate(-1.0)
     rel = T.soft_split_gate(0.25, relative=True)  # temperature in units of the threshold
-    np.testing.assert_allclose(rel(psi, 0.4), 1 / (1 + np.exp(-(np.asarray(psi) / 0.4 - 1) / 0.25)), rtol=1e-14)
+    np.testing.assert_allclose(
+        rel(psi, 0.4), 1 / (1 + np.exp(-(np.asarray(psi) / 0.4 - 1) / 0.25)), rtol=1e-14
+    )
     np.testing.assert_array_equal(T.soft_split_gate(0.25, relative=True, mode="hard")(psi, 0.5), hard)
 
 
@@ -156,7 +158,9 @@ def test_straight_through_pruning():
 
     b = f(0.9, "straight_through")
     assert_same(a, b)  # hard forward pass
-    g = jax.grad(lambda r: jnp.sum(f(r, "straight_through").weights * f(r, "straight_through").means[:, 0]))(0.9)
+    g = jax.grad(lambda r: jnp.sum(f(r, "straight_through").weights * f(r, "straight_through").means[:, 0]))(
+        0.9
+    )
     assert np.isfinite(g) and g != 0
 
 
@@ -171,8 +175,15 @@ def test_soft_pcm_at_zero_temperature_is_pcm(dtype):
             a, ia = pcm(gm, rho=rho, lam=lam, max_components=8)
             modes = (("soft", (0.0, 0.0)), ("hard", (0.05, 0.25)), ("straight_through", (0.05, 0.25)))
             for mode, temps in modes[: 3 if dtype == jnp.float64 else 1]:
-                b, ib = PCM(rho=rho, lam=lam, max_components=8, gate_temperature=temps[0],
-                            temperature=temps[1], grid_size=9, mode=mode)(gm)
+                b, ib = PCM(
+                    rho=rho,
+                    lam=lam,
+                    max_components=8,
+                    gate_temperature=temps[0],
+                    temperature=temps[1],
+                    grid_size=9,
+                    mode=mode,
+                )(gm)
                 assert_same(a, b)
                 assert jnp.array_equal(ia.labels, ib.labels)
                 assert ia.cost == ib.cost and ia.pruned_mass == ib.pruned_mass
@@ -205,10 +216,22 @@ def _soft_pcm_objective():
     gm = random_gm(3)
 
     def f(theta):
-        out, info = pcm(gm, rho=theta[0], lam=theta[1], max_components=9, gate_temperature=0.02,
-                        temperature=0.25, grid_size=9, mode="soft")
-        return (jnp.sum(out.weights * out.means[:, 0] ** 2) + jnp.sum(out.weights * out.covs[:, 0, 0])
-                + 10 * info.cost + 0.1 * info.aux["n_expected"])
+        out, info = pcm(
+            gm,
+            rho=theta[0],
+            lam=theta[1],
+            max_components=9,
+            gate_temperature=0.02,
+            temperature=0.25,
+            grid_size=9,
+            mode="soft",
+        )
+        return (
+            jnp.sum(out.weights * out.means[:, 0] ** 2)
+            + jnp.sum(out.weights * out.covs[:, 0, 0])
+            + 10 * info.cost
+            + 0.1 * info.aux["n_expected"]
+        )
 
     return f, jnp.asarray([0.93, 2.1])
 
@@ -230,11 +253,14 @@ def test_soft_pcm_gradient_finite_with_negligible_weights():
     """A soft gate keeps a 1e-160 component live; merged alone, its squared weight would underflow
     in the derivative (regression: a NaN gradient seen while tuning the PCM-GSF)."""
     w = np.array([0.5, 0.3, 0.2 - 1e-12, 1e-12, 1e-80, 1e-160])
-    gm = GaussianMixture.create(w, [[0.0], [1.0], [2.5], [6.0], [-9.0], [14.0]], np.ones((6, 1, 1)), capacity=K)
+    gm = GaussianMixture.create(
+        w, [[0.0], [1.0], [2.5], [6.0], [-9.0], [14.0]], np.ones((6, 1, 1)), capacity=K
+    )
 
     def f(theta):
-        out, info = pcm(gm, rho=theta[0], lam=theta[1], gate_temperature=0.02, temperature=0.25, grid_size=9,
-                        mode="soft")
+        out, info = pcm(
+            gm, rho=theta[0], lam=theta[1], gate_temperature=0.02, temperature=0.25, grid_size=9, mode="soft"
+        )
         return jnp.sum(out.weights * out.means[:, 0]) + jnp.sum(out.covs) + info.cost
 
     g = jax.jacfwd(f)(jnp.asarray([0.99, 2.0]))
@@ -244,7 +270,9 @@ def test_soft_pcm_gradient_finite_with_negligible_weights():
 
 
 def test_soft_pcm_jit_vmap_padding():
-    cfg = PCM(rho=0.95, lam=1.8, gate_temperature=0.02, temperature=0.25, max_components=9, grid_size=9, mode="soft")
+    cfg = PCM(
+        rho=0.95, lam=1.8, gate_temperature=0.02, temperature=0.25, max_components=9, grid_size=9, mode="soft"
+    )
     gms = [random_gm(20 + s) for s in range(3)]
     eager = [cfg(g) for g in gms]
     jitted = jax.jit(lambda c, g: c(g))(cfg, gms[0])
@@ -258,8 +286,17 @@ def test_soft_pcm_jit_vmap_padding():
         np.testing.assert_allclose(info.cost, binfo.cost[i], rtol=1e-12)
     # extra padded slots change nothing (capacity of the output fixed)
     padded = pad(gms[0], K + 4)
-    out_p, info_p = pcm(padded, rho=0.95, lam=1.8, gate_temperature=0.02, temperature=0.25, grid_size=9,
-                        max_components=9, capacity=9, mode="soft")
+    out_p, info_p = pcm(
+        padded,
+        rho=0.95,
+        lam=1.8,
+        gate_temperature=0.02,
+        temperature=0.25,
+        grid_size=9,
+        max_components=9,
+        capacity=9,
+        mode="soft",
+    )
     out_0, info_0 = eager[0]
     n0 = int(out_0.mask.sum())
     assert int(out_p.mask.sum()) == n0
@@ -313,13 +350,20 @@ def random_walk(q_true=1.0, r=1.0, p0=4.0, n_steps=25):
 
     def model_q(q):
         dtype = jnp.float64
-        one = lambda v: GaussianMixture(jnp.ones(1, dtype), jnp.zeros((1, 1), dtype),  # noqa: E731
-                                        jnp.reshape(jnp.asarray(v, dtype), (1, 1, 1)), jnp.ones(1, bool))
-        return StateSpaceModel(f=lambda x, t: x, h=lambda x, t: x, process_noise=one(q),
-                               measurement_noise=one(r), prior=one(p0))
+        one = lambda v: GaussianMixture(  # noqa: E731
+            jnp.ones(1, dtype),
+            jnp.zeros((1, 1), dtype),
+            jnp.reshape(jnp.asarray(v, dtype), (1, 1, 1)),
+            jnp.ones(1, bool),
+        )
+        return StateSpaceModel(
+            f=lambda x, t: x, h=lambda x, t: x, process_noise=one(q), measurement_noise=one(r), prior=one(p0)
+        )
 
     sc = Scenario(
-        name="walk", model=model_q(q_true), n_steps=n_steps,
+        name="walk",
+        model=model_q(q_true),
+        n_steps=n_steps,
         sample_initial=lambda k: math.sqrt(p0) * jax.random.normal(k, (1,), jnp.float64),
         sample_process_noise=lambda k, t: math.sqrt(q_true) * jax.random.normal(k, (1,), jnp.float64),
         sample_measurement_noise=lambda k, t: math.sqrt(r) * jax.random.normal(k, (1,), jnp.float64),
@@ -349,9 +393,19 @@ def test_tune_recovers_the_optimal_kalman_gain():
     """
     sc, model_q = random_walk()
     n_runs = 256
-    res = T.tune(lambda p: build_kf(model_q(p["q"])), sc, {"q": 0.1}, T.armse_loss(),
-                 optimizer=optax.adam(0.2), n_runs=n_runs, steps=40, key=jax.random.key(3),
-                 bounds={"q": (1e-3, 20.0)}, resample=False, progress=False)
+    res = T.tune(
+        lambda p: build_kf(model_q(p["q"])),
+        sc,
+        {"q": 0.1},
+        T.armse_loss(),
+        optimizer=optax.adam(0.2),
+        n_runs=n_runs,
+        steps=40,
+        key=jax.random.key(3),
+        bounds={"q": (1e-3, 20.0)},
+        resample=False,
+        progress=False,
+    )
     h = res.history
     assert h.ok.all() and h.loss.shape == (40,) and h.params["q"][0] == pytest.approx(0.1)
     assert h.loss[-1] < h.loss[0]
@@ -367,14 +421,20 @@ def test_tune_recovers_the_optimal_kalman_gain():
     # the recorded gradient is d loss / d q of the same objective (finite differences)
     q = h.params["q"][-1]
     f = lambda v: jnp.mean(jnp.sqrt(jnp.mean(sq_at(v[0]), axis=0)))  # noqa: E731  (the ARMSE)
-    np.testing.assert_allclose(h.grads["q"][-1], central_fd(f, jnp.asarray([q]), 1e-5)[0], rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(
+        h.grads["q"][-1], central_fd(f, jnp.asarray([q]), 1e-5)[0], rtol=1e-5, atol=1e-8
+    )
 
 
 def test_losses_and_bounds():
     scores = T.TuneScores(
-        sq_error=jnp.asarray([[1.0, 4.0], [9.0, 16.0]]), position_sq_error=jnp.asarray([[1.0, 4.0], [9.0, 16.0]]),
-        nees=jnp.asarray([[1.0, 2.0], [3.0, 4.0]]), cost=jnp.asarray([[0.1, 0.2], [0.3, 0.4]]),
-        n_expected=jnp.asarray([[2.0, 3.0], [4.0, 5.0]]), flags=jnp.zeros((2, 2), bool))
+        sq_error=jnp.asarray([[1.0, 4.0], [9.0, 16.0]]),
+        position_sq_error=jnp.asarray([[1.0, 4.0], [9.0, 16.0]]),
+        nees=jnp.asarray([[1.0, 2.0], [3.0, 4.0]]),
+        cost=jnp.asarray([[0.1, 0.2], [0.3, 0.4]]),
+        n_expected=jnp.asarray([[2.0, 3.0], [4.0, 5.0]]),
+        flags=jnp.zeros((2, 2), bool),
+    )
     armse = (math.sqrt(5.0) + math.sqrt(10.0)) / 2
     assert float(T.armse_loss()(scores)) == pytest.approx(armse)
     assert float(T.anees_loss(1.0)(scores)) == pytest.approx(1.5)
@@ -382,8 +442,13 @@ def test_losses_and_bounds():
     assert float(T.count_loss()(scores)) == pytest.approx(3.5)
     w = T.weighted_loss((1.0, T.armse_loss()), (0.5, T.count_loss()))
     assert float(w(scores)) == pytest.approx(armse + 1.75)
-    for b, x in ((T.Bounds(0.5, 0.9999), 0.9544), (T.Bounds(1.0, None), 2.5), (T.Bounds(None, 3.0), -1.0),
-                 (T.Bounds(), 0.3), (T.Bounds(1e-3, 20.0, log=True), 0.02)):
+    for b, x in (
+        (T.Bounds(0.5, 0.9999), 0.9544),
+        (T.Bounds(1.0, None), 2.5),
+        (T.Bounds(None, 3.0), -1.0),
+        (T.Bounds(), 0.3),
+        (T.Bounds(1e-3, 20.0, log=True), 0.02),
+    ):
         assert float(b.to_constrained(jnp.asarray(b.to_unconstrained(x)))) == pytest.approx(x, rel=1e-12)
     with pytest.raises(ValueError, match="terms"):
         T.weighted_loss()
@@ -404,8 +469,16 @@ def test_tune_validation():
 
 
 def _pcm_gsf(sc, p, mode="soft"):
-    red = PCM(rho=p["rho"], lam=p["lam"], gate_temperature=0.02, temperature=0.25, grid_size=9, max_components=8,
-              capacity=8, mode=mode)
+    red = PCM(
+        rho=p["rho"],
+        lam=p["lam"],
+        gate_temperature=0.02,
+        temperature=0.25,
+        grid_size=9,
+        max_components=8,
+        capacity=8,
+        mode=mode,
+    )
     return build_gsf(sc.model, "ekf", red, capacity=8, track_ise=False)
 
 
@@ -416,7 +489,9 @@ def test_pcm_gsf_study_gradient_matches_finite_differences():
 
     @jax.jit
     def f(theta):
-        return loss(T.study_scores(_pcm_gsf(sc, {"rho": theta[0], "lam": theta[1]}), sc, 3, jax.random.key(7)))
+        return loss(
+            T.study_scores(_pcm_gsf(sc, {"rho": theta[0], "lam": theta[1]}), sc, 3, jax.random.key(7))
+        )
 
     theta = jnp.asarray([0.95, 2.05])
     g = jax.jit(jax.jacfwd(f))(theta)
@@ -429,8 +504,9 @@ def test_pcm_gsf_reverse_mode_equals_forward_mode():
     sc = jump_system(n_steps=8)
 
     def f(theta):
-        return T.armse_loss()(T.study_scores(_pcm_gsf(sc, {"rho": theta[0], "lam": theta[1]}), sc, 3,
-                                             jax.random.key(7)))
+        return T.armse_loss()(
+            T.study_scores(_pcm_gsf(sc, {"rho": theta[0], "lam": theta[1]}), sc, 3, jax.random.key(7))
+        )
 
     theta = jnp.asarray([0.95, 2.05])
     np.testing.assert_allclose(jax.jit(jax.grad(f))(theta), jax.jit(jax.jacfwd(f))(theta), rtol=1e-8)
@@ -440,10 +516,25 @@ def test_pcm_gsf_reverse_mode_equals_forward_mode():
 def test_pcm_gsf_hard_mode_equals_pcm_gsf():
     """At zero temperature the relaxed PCM-GSF is the PCM-GSF with a fixed λ, run for run."""
     sc = jump_system(n_steps=10)
-    soft = build_gsf(sc.model, "ekf", PCM(rho=0.95, lam=2.0, max_components=8, capacity=8, gate_temperature=0.0,
-                                          temperature=0.0, grid_size=9, mode="soft"), capacity=8, track_ise=False)
-    hard = build_gsf(sc.model, "ekf", PCM(rho=0.95, lam=2.0, max_components=8, capacity=8), capacity=8,
-                     track_ise=False)
+    soft = build_gsf(
+        sc.model,
+        "ekf",
+        PCM(
+            rho=0.95,
+            lam=2.0,
+            max_components=8,
+            capacity=8,
+            gate_temperature=0.0,
+            temperature=0.0,
+            grid_size=9,
+            mode="soft",
+        ),
+        capacity=8,
+        track_ise=False,
+    )
+    hard = build_gsf(
+        sc.model, "ekf", PCM(rho=0.95, lam=2.0, max_components=8, capacity=8), capacity=8, track_ise=False
+    )
     a = T.study_scores(soft, sc, 4, jax.random.key(1))
     b = T.study_scores(hard, sc, 4, jax.random.key(1))
     np.testing.assert_array_equal(a.sq_error, b.sq_error)
@@ -515,8 +606,19 @@ def test_tune_over_a_leaf_of_filter_params():
     study's gradient (common random numbers)."""
     sc, filt = _pruned_gsf(n_steps=6)
     factory = lambda p: filt._replace(params=_with(filt, rho=p["rho"]))  # noqa: E731
-    res = T.tune(factory, sc, {"rho": 0.9}, T.armse_loss(), optimizer=optax.sgd(1e-3), n_runs=2, steps=2,
-                 key=jax.random.key(4), bounds={"rho": (0.5, 0.9999)}, resample=False, progress=False)
+    res = T.tune(
+        factory,
+        sc,
+        {"rho": 0.9},
+        T.armse_loss(),
+        optimizer=optax.sgd(1e-3),
+        n_runs=2,
+        steps=2,
+        key=jax.random.key(4),
+        bounds={"rho": (0.5, 0.9999)},
+        resample=False,
+        progress=False,
+    )
     assert res.history.ok.all() and res.history.params["rho"][0] == pytest.approx(0.9)
     f = jax.jit(lambda v: T.armse_loss()(T.study_scores(factory({"rho": v[0]}), sc, 2, jax.random.key(4))))
     g = jax.grad(f)(jnp.asarray([0.9]))

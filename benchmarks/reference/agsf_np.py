@@ -106,7 +106,7 @@ def split_levels(w, m, P, n_levels, l, omega):  # noqa: E741
     kids = [(w, m, P)]
     for _ in range(n_levels):
         new = []
-        for (wc, mc, Pc) in kids:
+        for wc, mc, Pc in kids:
             lam, e = principal_axis(Pc)
             a = math.sqrt(lam) * e
             Pn = Pc - l * l * np.outer(a, a)
@@ -169,16 +169,18 @@ class AGSSCKF:
     def predict(self, t) -> Slots:
         C, K, Q = self.C, self.K, self.Q
         d = self.post_m.shape[1]
-        s = Slots(np.zeros(C), np.zeros((C, d)), np.tile(np.eye(d), (C, 1, 1)), np.zeros(C, bool),
-                  np.zeros(C, int))
+        s = Slots(
+            np.zeros(C), np.zeros((C, d)), np.tile(np.eye(d), (C, 1, 1)), np.zeros(C, bool), np.zeros(C, int)
+        )
         for l in range(Q):  # noqa: E741
             for jp in range(K):
                 j = l * K + jp
                 s.parent[j] = jp
                 if not self.post_live[jp]:
                     continue
-                s.m[j], s.P[j] = ckf_predict(self.f, self.post_m[jp], self.post_P[jp], t,
-                                             self.qm[l], self.qP[l])
+                s.m[j], s.P[j] = ckf_predict(
+                    self.f, self.post_m[jp], self.post_P[jp], t, self.qm[l], self.qP[l]
+                )
                 s.w[j] = self.post_w[jp] * self.qw[l]
                 s.live[j] = True
         return s
@@ -243,15 +245,17 @@ class AGSSCKF:
         # Step 6: merge rules 1-3 with the previous step's history
         par = s.parent
         low_before = np.array([self.post_w[par[i]] < cfg.low_weight for i in range(C)])
-        low_don = np.array([don_now[i] < cfg.merge_don and self.post_don[par[i]] < cfg.merge_don
-                            for i in range(C)])
+        low_don = np.array(
+            [don_now[i] < cfg.merge_don and self.post_don[par[i]] < cfg.merge_don for i in range(C)]
+        )
         dons = don_now.copy()
 
         def before_cost(a, b):
             if a == b:
                 return 0.0
-            return pair_cost(self.post_w[a], self.post_m[a], self.post_P[a],
-                             self.post_w[b], self.post_m[b], self.post_P[b])
+            return pair_cost(
+                self.post_w[a], self.post_m[a], self.post_P[a], self.post_w[b], self.post_m[b], self.post_P[b]
+            )
 
         for _ in range(C - 1):
             best, bi, bj = np.inf, -1, -1
@@ -260,8 +264,12 @@ class AGSSCKF:
                     if not (s.live[i] and s.live[j]):
                         continue
                     c = pair_cost(s.w[i], s.m[i], s.P[i], s.w[j], s.m[j], s.P[j])
-                    r1 = (s.w[i] < cfg.low_weight and low_before[i]
-                          and s.w[j] < cfg.low_weight and low_before[j])
+                    r1 = (
+                        s.w[i] < cfg.low_weight
+                        and low_before[i]
+                        and s.w[j] < cfg.low_weight
+                        and low_before[j]
+                    )
                     r2 = c < cfg.merge_threshold and before_cost(par[i], par[j]) < cfg.merge_threshold
                     r3 = low_don[i] and low_don[j]
                     if (r1 or r2 or r3) and c < best:

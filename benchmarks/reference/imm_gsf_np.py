@@ -52,8 +52,17 @@ def run_imm_gsf(
                     ms.append(posts[i][1])
                     Ps.append(posts[i][2])
             mixed = (np.concatenate(ws), np.concatenate(ms), np.concatenate(Ps))
-            upd, ll = gsf_np.gsf_step(mixed, z, k + 1, lambda x, t, F=Fs[j]: F @ x, lambda x, t: H @ x,
-                                      lambda x, t, F=Fs[j]: F, lambda x, t: H, q, r)
+            upd, ll = gsf_np.gsf_step(
+                mixed,
+                z,
+                k + 1,
+                lambda x, t, F=Fs[j]: F @ x,
+                lambda x, t: H @ x,
+                lambda x, t, F=Fs[j]: F,
+                lambda x, t: H,
+                q,
+                r,
+            )
             full.append(upd)
             logliks.append(ll)
         logliks = np.array(logliks)

@@ -42,8 +42,12 @@ def gospa_ref(x, y, *, c: float, p: float) -> dict:
     half = c**p / 2.0
     if len(x) == 0 or len(y) == 0:
         missed, false = half * len(y), half * len(x)
-        return {"distance": (missed + false) ** (1.0 / p), "localisation": 0.0, "missed": missed,
-                "false": false}
+        return {
+            "distance": (missed + false) ** (1.0 / p),
+            "localisation": 0.0,
+            "missed": missed,
+            "false": false,
+        }
     d = _dist(x, y)
     D = np.minimum(d, c) ** p
     r, k = linear_sum_assignment(D)
@@ -52,5 +56,9 @@ def gospa_ref(x, y, *, c: float, p: float) -> dict:
     n_pairs = int(np.sum(good))
     missed = half * (len(y) - n_pairs)
     false = half * (len(x) - n_pairs)
-    return {"distance": (loc + missed + false) ** (1.0 / p), "localisation": loc, "missed": missed,
-            "false": false}
+    return {
+        "distance": (loc + missed + false) ** (1.0 / p),
+        "localisation": loc,
+        "missed": missed,
+        "false": false,
+    }

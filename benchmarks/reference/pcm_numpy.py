@@ -116,16 +116,26 @@ def merge_moment(w, m, P):
 
 def cluster_ise(w, m, P, W, mbar, Pbar):
     """``∫ (f_c - q_c)^2`` by seed 000 eq 35 with explicit double loops."""
-    jhh = sum(
-        w[a] * w[b] * _n_pdf(m[a], m[b], P[a] + P[b]) for a in range(len(w)) for b in range(len(w))
-    )
+    jhh = sum(w[a] * w[b] * _n_pdf(m[a], m[b], P[a] + P[b]) for a in range(len(w)) for b in range(len(w)))
     jhr = sum(w[a] * W * _n_pdf(m[a], mbar, P[a] + Pbar) for a in range(len(w)))
     jrr = W * W * _n_pdf(mbar, mbar, 2 * Pbar)
     return jhh - 2 * jhr + jrr
 
 
-def reduce_fixed(w, m, P, lam, *, merge="ci", triangular=False, subset_rule="split", alpha=0.001,
-                 reg="exp", ise_scale=0.5, range_scale=0.5):
+def reduce_fixed(
+    w,
+    m,
+    P,
+    lam,
+    *,
+    merge="ci",
+    triangular=False,
+    subset_rule="split",
+    alpha=0.001,
+    reg="exp",
+    ise_scale=0.5,
+    range_scale=0.5,
+):
     """Cluster at ``λ``, merge each cluster, and the EISE (seed 000 eq 29 / seed 003 eq 10)."""
     clusters = [sorted(c) for c in cluster(m, P, lam, triangular, subset_rule, range_scale) if c]
     fn = merge_ci if merge == "ci" else merge_moment
@@ -140,12 +150,23 @@ def reduce_fixed(w, m, P, lam, *, merge="ci", triangular=False, subset_rule="spl
     n_out = len(clusters)
     n_ref = len(w)
     penalty = alpha * (math.exp(n_out / n_ref) if reg == "exp" else math.log10(n_out))
-    return (np.asarray(out_w), np.asarray(out_m), np.asarray(out_P), clusters,
-            ise_scale * total + penalty)
+    return (np.asarray(out_w), np.asarray(out_m), np.asarray(out_P), clusters, ise_scale * total + penalty)
 
 
-def pcm_grid(w, m, P, *, rho=0.9544, max_components=None, lam_lo=1.0, lam_hi=3.0, grid=11,
-             alpha=0.001, prune=True, range_scale=0.5):
+def pcm_grid(
+    w,
+    m,
+    P,
+    *,
+    rho=0.9544,
+    max_components=None,
+    lam_lo=1.0,
+    lam_hi=3.0,
+    grid=11,
+    alpha=0.001,
+    prune=True,
+    range_scale=0.5,
+):
     """Seed 000 Table 1 with a grid search over λ in place of Newton steps (the NumPy baseline)."""
     if prune:
         _, w, m, P = prune_censored(w, m, P, rho, max_components)
@@ -159,7 +180,12 @@ def pcm_grid(w, m, P, *, rho=0.9544, max_components=None, lam_lo=1.0, lam_hi=3.0
 
 def ise_mixtures(wa, ma, Pa, wb, mb, Pb):
     """ISE between two mixtures (seed 000 eq 42) by double loops."""
+
     def inner(w1, m1, P1, w2, m2, P2):
-        return sum(w1[a] * w2[b] * _n_pdf(m1[a], m2[b], P1[a] + P2[b])
-                   for a in range(len(w1)) for b in range(len(w2)))
+        return sum(
+            w1[a] * w2[b] * _n_pdf(m1[a], m2[b], P1[a] + P2[b])
+            for a in range(len(w1))
+            for b in range(len(w2))
+        )
+
     return inner(wa, ma, Pa, wa, ma, Pa) - 2 * inner(wa, ma, Pa, wb, mb, Pb) + inner(wb, mb, Pb, wb, mb, Pb)

@@ -112,8 +112,21 @@ def kmeans_1d(w, m, v, K, max_iter=100):
 
 
 def pcrb_gmm_1d_numpy(
-    f, fprime, hprime, q, r, prior_w, prior_m, prior_v, J0, n_steps, K, state_lib, noise_lib,
-    quad_order=40, max_iter=100,
+    f,
+    fprime,
+    hprime,
+    q,
+    r,
+    prior_w,
+    prior_m,
+    prior_v,
+    J0,
+    n_steps,
+    K,
+    state_lib,
+    noise_lib,
+    quad_order=40,
+    max_iter=100,
 ):
     """Algorithm 2 (every step) for a scalar model; returns the bounds ``1/J_n``, ``n = 0..T``.
 

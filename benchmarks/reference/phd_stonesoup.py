@@ -62,8 +62,21 @@ def _stonesoup():
 class StoneSoupGMPHD:
     """Vo & Ma's GM-PHD (linear Gaussian) through Stone Soup components; one ``step`` per scan."""
 
-    def __init__(self, F, Q, H, R, birth, *, survival_prob, detection_prob, clutter_intensity,
-                 prune_threshold=1e-5, merge_threshold=4.0, max_components=100):
+    def __init__(
+        self,
+        F,
+        Q,
+        H,
+        R,
+        birth,
+        *,
+        survival_prob,
+        detection_prob,
+        clutter_intensity,
+        prune_threshold=1e-5,
+        merge_threshold=4.0,
+        max_components=100,
+    ):
         from stonesoup.hypothesiser.distance import DistanceHypothesiser
         from stonesoup.hypothesiser.gaussianmixture import GaussianMixtureHypothesiser
         from stonesoup.measures import Mahalanobis
@@ -77,18 +90,26 @@ class StoneSoupGMPHD:
         mapping = tuple(int(np.argmax(row)) for row in H)
         if not np.allclose(H, np.eye(H.shape[1])[list(mapping)]):
             raise ValueError("H: this adapter handles coordinate-selecting H (LinearGaussian mapping)")
-        self.measurement_model = LinearGaussian(ndim_state=H.shape[1], mapping=mapping,
-                                                noise_covar=np.asarray(R, float))
+        self.measurement_model = LinearGaussian(
+            ndim_state=H.shape[1], mapping=mapping, noise_covar=np.asarray(R, float)
+        )
         self.predictor = KalmanPredictor(_stonesoup()(F=np.asarray(F, float), Q=np.asarray(Q, float)))
         kalman_updater = KalmanUpdater(self.measurement_model)
-        self.updater = PHDUpdater(kalman_updater, clutter_spatial_density=float(clutter_intensity),
-                                  prob_detection=float(detection_prob), prob_survival=float(survival_prob))
+        self.updater = PHDUpdater(
+            kalman_updater,
+            clutter_spatial_density=float(clutter_intensity),
+            prob_detection=float(detection_prob),
+            prob_survival=float(survival_prob),
+        )
         self.hypothesiser = GaussianMixtureHypothesiser(
             DistanceHypothesiser(self.predictor, kalman_updater, Mahalanobis(), missed_distance=np.inf),
-            order_by_detection=True)
+            order_by_detection=True,
+        )
         self.reducer = GaussianMixtureReducer(
-            prune_threshold=prune_threshold, merge_threshold=merge_threshold,
-            max_number_components=max_components)
+            prune_threshold=prune_threshold,
+            merge_threshold=merge_threshold,
+            max_number_components=max_components,
+        )
         self.birth = [(float(w), np.asarray(m, float), np.asarray(P, float)) for w, m, P in birth]
         self.p_s = float(survival_prob)
         self.start = datetime.datetime(2000, 1, 1)
@@ -96,9 +117,16 @@ class StoneSoupGMPHD:
     def _components(self, comps, timestamp):
         from stonesoup.types.state import TaggedWeightedGaussianState
 
-        return [TaggedWeightedGaussianState(np.asarray(m, float).reshape(-1, 1), np.asarray(P, float),
-                                            weight=float(w), timestamp=timestamp, tag=f"c{i}")
-                for i, (w, m, P) in enumerate(comps)]
+        return [
+            TaggedWeightedGaussianState(
+                np.asarray(m, float).reshape(-1, 1),
+                np.asarray(P, float),
+                weight=float(w),
+                timestamp=timestamp,
+                tag=f"c{i}",
+            )
+            for i, (w, m, P) in enumerate(comps)
+        ]
 
     def step(self, components, zs, k):
         """One predict + update + reduce from ``components`` (list of ``(w, m, P)`` at step ``k - 1``).
@@ -114,15 +142,23 @@ class StoneSoupGMPHD:
         births = self._components([(w / self.p_s, m, P) for w, m, P in self.birth], t)
         for b in births:
             b.tag = "b" + b.tag
-        detections = {Detection(np.asarray(z, float).reshape(-1, 1), timestamp=t,
-                                measurement_model=self.measurement_model) for z in zs}
+        detections = {
+            Detection(
+                np.asarray(z, float).reshape(-1, 1), timestamp=t, measurement_model=self.measurement_model
+            )
+            for z in zs
+        }
         hypotheses = self.hypothesiser.hypothesise(comps + births, detections, t)
         updated = list(self.updater.update(hypotheses))
-        upd = [(float(c.weight), np.asarray(c.state_vector, float).ravel(), np.asarray(c.covar, float))
-               for c in updated]
+        upd = [
+            (float(c.weight), np.asarray(c.state_vector, float).ravel(), np.asarray(c.covar, float))
+            for c in updated
+        ]
         reduced = self.reducer.reduce(updated)
-        red = [(float(c.weight), np.asarray(c.state_vector, float).ravel(), np.asarray(c.covar, float))
-               for c in reduced]
+        red = [
+            (float(c.weight), np.asarray(c.state_vector, float).ravel(), np.asarray(c.covar, float))
+            for c in reduced
+        ]
         return upd, red
 
     def run(self, scans, initial=()):

@@ -176,8 +176,13 @@ def kmeans(w, m, P, num_out, max_iter=100, tol=0.0):
     n = len(w)
     comps = [(float(w[k]), np.array(m[k], float), np.array(P[k], float)) for k in range(n)]
     if n <= num_out:
-        return {"w": np.array(w, float), "m": np.array(m, float), "P": np.array(P, float),
-                "labels": np.arange(n), "iterations": 0}
+        return {
+            "w": np.array(w, float),
+            "m": np.array(m, float),
+            "P": np.array(P, float),
+            "labels": np.arange(n),
+            "iterations": 0,
+        }
     first = int(np.argmax(w))
     centers = [comps[first]]
     for _ in range(1, num_out):
@@ -192,8 +197,11 @@ def kmeans(w, m, P, num_out, max_iter=100, tol=0.0):
         for c in range(num_out):
             members = [i for i in range(n) if labels[i] == c]
             if members:
-                new.append(merge_moment(np.array([w[i] for i in members]), np.array(m)[members],
-                                        np.array(P)[members]))
+                new.append(
+                    merge_moment(
+                        np.array([w[i] for i in members]), np.array(m)[members], np.array(P)[members]
+                    )
+                )
             else:
                 new.append(centers[c])
         it += 1
@@ -240,7 +248,7 @@ def prune_censored(w, rho=0.9544, n_u=None):
     total = ws.sum()
     n_max = 1
     for n in range(1, I + 1):  # 1-based n
-        gamma = ws[n - 1:].sum() / total
+        gamma = ws[n - 1 :].sum() / total
         if gamma >= rho:
             n_max = n
     N = I - n_max + 1
@@ -260,9 +268,7 @@ def ise(w1, m1, P1, w2, m2, P2):
             for j in range(len(wb))
         )
 
-    return inner(w1, m1, P1, w1, m1, P1) - 2 * inner(w1, m1, P1, w2, m2, P2) + inner(
-        w2, m2, P2, w2, m2, P2
-    )
+    return inner(w1, m1, P1, w1, m1, P1) - 2 * inner(w1, m1, P1, w2, m2, P2) + inner(w2, m2, P2, w2, m2, P2)
 
 
 def _partitions(n, k):
@@ -312,7 +318,6 @@ def vo_ma(w, m, P, prune, merge, max_components):
     W = np.array([c[0] for c in out])
     scale = total / W.sum()
     return W * scale, np.array([c[1] for c in out]), np.array([c[2] for c in out])
-
 
 
 def _mix(slots, idx, scale=1.0):
@@ -444,8 +449,10 @@ def runnalls_cached(w, m, P, num_out):
         l1 = w[i] / W
         l2 = w / W
         diff = m[i] - m
-        Pij = l1[:, None, None] * P[i] + l2[:, None, None] * P + (l1 * l2)[:, None, None] * (
-            diff[:, :, None] * diff[:, None, :]
+        Pij = (
+            l1[:, None, None] * P[i]
+            + l2[:, None, None] * P
+            + (l1 * l2)[:, None, None] * (diff[:, :, None] * diff[:, None, :])
         )
         return 0.5 * (W * np.linalg.slogdet(Pij)[1] - w[i] * logdets[i] - w * logdets)
 

@@ -234,12 +234,11 @@ def check_model(model: StateSpaceModel) -> tuple[int, int]:
         raise ValueError(f"model.f: must map a ({d},) state to ({d},), returned {fo.shape}")
     ho = _output_shape(model, "h", h, x, inputs)
     if ho is not None and getattr(ho, "shape", None) != (m,):
-        raise ValueError(
-            f"model.h: returns shape {ho.shape}, but model.measurement_noise has dimension {m}"
-        )
+        raise ValueError(f"model.h: returns shape {ho.shape}, but model.measurement_noise has dimension {m}")
     angles = tuple(model.angle_dims)
-    if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < m for i in angles) \
-            or len(set(angles)) != len(angles):
+    if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < m for i in angles) or len(
+        set(angles)
+    ) != len(angles):
         raise ValueError(f"model.angle_dims: expected distinct measurement indices in [0, {m}), got {angles}")
     return d, m
 

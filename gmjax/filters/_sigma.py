@@ -66,9 +66,7 @@ def rule_getter(rule):
 
         def get(d, dtype):
             if rule.dim != d:
-                raise ValueError(
-                    f"rule: dimension {rule.dim} does not match the state dimension {d}"
-                )
+                raise ValueError(f"rule: dimension {rule.dim} does not match the state dimension {d}")
             return SigmaPoints(*(a.astype(dtype) for a in rule))
 
         return get
@@ -95,8 +93,9 @@ def weighted_cov(wc, A, B):
     return jnp.einsum("n,ni,nj->ij", wc, A, B)
 
 
-def local_sigma(f: StepFn, h: StepFn, rule: SigmaPoints | Callable[..., SigmaPoints],
-                angle_dims: tuple[int, ...] = ()) -> LocalFilter:
+def local_sigma(
+    f: StepFn, h: StepFn, rule: SigmaPoints | Callable[..., SigmaPoints], angle_dims: tuple[int, ...] = ()
+) -> LocalFilter:
     """Sigma-point Kalman filter with the quadrature ``rule`` (see the module docstring).
 
     Args:

@@ -270,6 +270,7 @@ def _pair_costs(w: Array, m: Array, P: Array) -> Array:
 def _fixed_loop(n: int, body: Callable, carry: Any) -> Any:
     """``n`` trips of ``body`` (a ``fori_loop`` with a static trip count); after the first
     ``go = False`` the trips are no-ops."""
+
     def fbody(_, c):
         carry, go = c
         new, did = body(carry)
@@ -281,6 +282,7 @@ def _fixed_loop(n: int, body: Callable, carry: Any) -> Any:
 
 def _while_loop(n: int, body: Callable, carry: Any) -> Any:
     """At most ``n`` trips of ``body``, exiting after the first ``go = False`` (a ``while_loop``)."""
+
     def cond(c):
         i, _, go = c
         return (i < n) & go
@@ -409,10 +411,12 @@ def _fit(c: _MergeCarry, capacity: int):
     live = c.mask[idx]
     gm = gmm.sanitize(GaussianMixture(jnp.where(live, c.w[idx], 0.0), c.m[idx], c.P[idx], live))
     gm = gmm.pad(gmm.normalize(gm), capacity)
-    don = jnp.concatenate([jnp.where(live, c.don[idx], jnp.inf),
-                           jnp.full((capacity - n_out,), jnp.inf, c.don.dtype)])
-    out_slot = jnp.full((K,), -1, jnp.int32).at[idx].set(
-        jnp.where(live, jnp.arange(n_out, dtype=jnp.int32), -1))
+    don = jnp.concatenate(
+        [jnp.where(live, c.don[idx], jnp.inf), jnp.full((capacity - n_out,), jnp.inf, c.don.dtype)]
+    )
+    out_slot = (
+        jnp.full((K,), -1, jnp.int32).at[idx].set(jnp.where(live, jnp.arange(n_out, dtype=jnp.int32), -1))
+    )
     labels = jnp.where(c.slot >= 0, out_slot[jnp.clip(c.slot, 0, K - 1)], -1)
     return gm, don, overflow, labels
 
@@ -506,11 +510,13 @@ class Step6Merge:
         K = gm.capacity
         for name, leaf in zip(Step6State._fields, state):
             if jnp.shape(leaf)[:1] != (K,):
-                raise ValueError(f"state.{name}: expected a leading slot axis of length {K}, "
-                                 f"got shape {jnp.shape(leaf)}")
+                raise ValueError(
+                    f"state.{name}: expected a leading slot axis of length {K}, got shape {jnp.shape(leaf)}"
+                )
 
-    def reduce(self, gm: GaussianMixture, state: Step6State, *,
-               key: PRNGKey | None = None) -> tuple[GaussianMixture, Step6State, ReductionInfo]:
+    def reduce(
+        self, gm: GaussianMixture, state: Step6State, *, key: PRNGKey | None = None
+    ) -> tuple[GaussianMixture, Step6State, ReductionInfo]:
         """Prune, merge by rules 1–3 and fit to ``capacity``: ``(reduced, new_state, info)``."""
         del key
         self._check(gm, state)
@@ -541,12 +547,14 @@ class Step6Merge:
         merged = _merge_rules(self, carry)
         out, don, overflow, labels = _fit(merged, cap)
         aux = {"n_pruned": jnp.sum((gm.mask & ~keep).astype(jnp.int32)), "n_merged": merged.n_merged}
-        info = make_info(gm, out, labels, pruned_mass=pruned_mass, overflow=overflow,
-                         cost=merged.cost, aux=aux)
+        info = make_info(
+            gm, out, labels, pruned_mass=pruned_mass, overflow=overflow, cost=merged.cost, aux=aux
+        )
         return out, self.history(out, don), info
 
-    def __call__(self, gm: GaussianMixture, *,
-                 key: PRNGKey | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: PRNGKey | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         """The reduction from a fresh state (:meth:`init`): ``(reduced, info)``."""
         out, _, info = self.reduce(gm, self.init(gm.capacity), key=key)
         return out, info
@@ -582,9 +590,7 @@ def _check_config(config: AGSFConfig) -> None:
         raise ValueError(f"config.n_max: must be a positive int, got {config.n_max!r}")
     if not isinstance(config.max_level, int) or config.max_level < 0:
         raise ValueError(f"config.max_level: must be a non-negative int, got {config.max_level!r}")
-    if config.capacity is not None and (
-        not isinstance(config.capacity, int) or config.capacity < 1
-    ):
+    if config.capacity is not None and (not isinstance(config.capacity, int) or config.capacity < 1):
         raise ValueError(f"config.capacity: must be a positive int or None, got {config.capacity!r}")
     if config.split_gate is not None and not callable(config.split_gate):
         raise ValueError("config.split_gate: must be a callable (psi, threshold) -> gate or None")
@@ -614,6 +620,7 @@ def _single_noise(noise: GaussianMixture) -> GaussianMixture:
 
 def _noise_major(tree: Any, n_post: int, n_q: int) -> Any:
     """Reorder parent-major children ``j' q + l`` (``gs_predict``, ``inherit``) to eq 41's ``l N + j'``."""
+
     def one(a):
         return jnp.swapaxes(a.reshape((n_post, n_q) + a.shape[1:]), 0, 1).reshape(a.shape)
 
@@ -622,6 +629,7 @@ def _noise_major(tree: Any, n_post: int, n_q: int) -> Any:
 
 def _pad_slots(tree: Any, capacity: int) -> Any:
     """Zero-pad every leaf's leading slot axis to ``capacity`` (padded slots hold no component)."""
+
     def one(a):
         extra = capacity - a.shape[0]
         return jnp.pad(a, [(0, extra)] + [(0, 0)] * (a.ndim - 1))
@@ -651,11 +659,15 @@ def _check_params(params: AGSFParams, static: tuple, n_q: int) -> AGSFConfig:
     if not isinstance(params, AGSFParams):
         raise ValueError(f"params: expected an AGSFParams, got {type(params).__name__}")
     if _static_part(params.config) != static:
-        raise ValueError("params.config: its static fields (n_max, capacity, max_level, "
-                         "split_gate) differ from the ones the filter was built with")
+        raise ValueError(
+            "params.config: its static fields (n_max, capacity, max_level, "
+            "split_gate) differ from the ones the filter was built with"
+        )
     if params.model.process_noise.capacity != n_q:
-        raise ValueError(f"params.model.process_noise: the filter was built for {n_q} slots, "
-                         f"got {params.model.process_noise.capacity}")
+        raise ValueError(
+            f"params.model.process_noise: the filter was built for {n_q} slots, "
+            f"got {params.model.process_noise.capacity}"
+        )
     return params.config
 
 
@@ -671,12 +683,13 @@ def _init_state(cfg: AGSFConfig, sz: _Sizes, prior: Any) -> AGSFState:
             f"(= capacity {sz.C} // {sz.Q} process-noise components); raise config.capacity"
         )
     fitted = gmm.pad(gmm.normalize(gmm.compact(prior)), max(sz.K_post, prior.capacity))
-    fitted = jax.tree_util.tree_map(lambda a: a[:sz.K_post], fitted)
+    fitted = jax.tree_util.tree_map(lambda a: a[: sz.K_post], fitted)
     return AGSFState(fitted, _step6(cfg, sz.K_post).history(fitted))
 
 
-def _split_stage(h: Callable, gate: Callable, cfg: AGSFConfig, sz: _Sizes, gm: GaussianMixture,
-                 t: Any, enabled: Array) -> tuple[GaussianMixture, Array, Array]:
+def _split_stage(
+    h: Callable, gate: Callable, cfg: AGSFConfig, sz: _Sizes, gm: GaussianMixture, t: Any, enabled: Array
+) -> tuple[GaussianMixture, Array, Array]:
     """Steps 2–3: split the most nonlinear component while ``N < N_max`` (eqs 26–32).
 
     Returns:
@@ -690,7 +703,7 @@ def _split_stage(h: Callable, gate: Callable, cfg: AGSFConfig, sz: _Sizes, gm: G
         return gm, origin0, n_split0
     dtype = gm.means.dtype
     levels = jnp.arange(1, L + 1)
-    sizes = 2 ** levels
+    sizes = 2**levels
 
     def body(carry):
         gm, origin, n_split = carry
@@ -698,9 +711,7 @@ def _split_stage(h: Callable, gate: Callable, cfg: AGSFConfig, sz: _Sizes, gm: G
         m = jnp.argmax(psi_all)
         psi = psi_all[m]
         N = gmm.n_active(gm)
-        thresholds = jnp.asarray(cfg.psi_th, dtype) * jnp.asarray(cfg.r, dtype) ** (
-            levels - 1
-        ).astype(dtype)
+        thresholds = jnp.asarray(cfg.psi_th, dtype) * jnp.asarray(cfg.r, dtype) ** (levels - 1).astype(dtype)
         psi_safe = jnp.where(jnp.isfinite(psi), psi, 0.0)
         g = gate(psi_safe, thresholds)
         fits = N - 1 + sizes <= sz.N_lim
@@ -790,14 +801,16 @@ def build_agsf(
     def check_params(params: AGSFParams) -> AGSFConfig:
         return _check_params(params, static, Q)
 
-    def init(params: AGSFParams, prior: GaussianMixture | None = None, *,
-             key: PRNGKey | None = None) -> AGSFState:
+    def init(
+        params: AGSFParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None
+    ) -> AGSFState:
         del key
         cfg = check_params(params)
         return _init_state(cfg, sz, params.model.prior if prior is None else prior)
 
-    def predict(params: AGSFParams, state: AGSFState, inputs: StepInputs, *,
-                key: PRNGKey | None = None) -> AGSFState:
+    def predict(
+        params: AGSFParams, state: AGSFState, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> AGSFState:
         """Step 7 (eqs 40–41): ``capacity // q`` posterior slots -> ``capacity`` working slots."""
         del key
         check_params(params)
@@ -807,8 +820,9 @@ def build_agsf(
         predicted, step6 = _noise_major((predicted, inherit(state.step6, Q)), K, Q)
         return AGSFState(gmm.pad(predicted, C), _pad_slots(step6, C))
 
-    def update(params: AGSFParams, state: AGSFState, z: Array, inputs: StepInputs, *,
-               key: PRNGKey | None = None) -> tuple[AGSFState, StepInfo]:
+    def update(
+        params: AGSFParams, state: AGSFState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> tuple[AGSFState, StepInfo]:
         """Steps 2–6 (eqs 26–39) on the ``capacity`` working slots."""
         cfg = check_params(params)
         t = inputs
@@ -837,11 +851,19 @@ def build_agsf(
             cov=cov,
             loglik=up.loglik,
             n_components=gmm.n_active(post),
-            flags=StepFlags(repaired=up.repaired, overflow=rinfo.overflow,
-                            degenerate=up.degenerate, nonfinite_measurement=missing),
+            flags=StepFlags(
+                repaired=up.repaired,
+                overflow=rinfo.overflow,
+                degenerate=up.degenerate,
+                nonfinite_measurement=missing,
+            ),
             reduction=rinfo,
-            extra={"n_predicted": n_predicted, "n_split": n_split,
-                   "n_updated": gmm.n_active(gm), "don_max": don_max},
+            extra={
+                "n_predicted": n_predicted,
+                "n_split": n_split,
+                "n_updated": gmm.n_active(gm),
+                "don_max": don_max,
+            },
         )
         return AGSFState(post, step6), info
 

@@ -204,7 +204,9 @@ def _riccati_step(P: Array, F: Array, H: Array, Q: Array, R: Array) -> tuple[Arr
     return gaussian.symmetrize(A @ Pp @ A.T + K @ R @ K.T), K, S
 
 
-def steady_state_gains(F: Array, H: Array, Q: Array, R: Array, P0: Array, *, iterations: int = 2000) -> tuple[Array, Array]:
+def steady_state_gains(
+    F: Array, H: Array, Q: Array, R: Array, P0: Array, *, iterations: int = 2000
+) -> tuple[Array, Array]:
     """Steady-state Kalman gain and innovation covariance of ``(F, H, Q, R)`` (traceable).
 
     Iterates the Riccati recursion ``iterations`` times from ``P0`` (a ``lax.fori_loop``).
@@ -217,8 +219,9 @@ def steady_state_gains(F: Array, H: Array, Q: Array, R: Array, P0: Array, *, ite
     return K, S
 
 
-def _pair_steady_state_gains(q_covs: Array, r_covs: Array, F: Array, H: Array, P0: Array,
-                             iterations: int) -> tuple[Array, Array]:
+def _pair_steady_state_gains(
+    q_covs: Array, r_covs: Array, F: Array, H: Array, P0: Array, iterations: int
+) -> tuple[Array, Array]:
     """:func:`steady_state_gains` of every model ``(i, j)``: ``(L, J, d, m)``, ``(L, J, m, m)``."""
     one = lambda Q, R: steady_state_gains(F, H, Q, R, P0, iterations=iterations)  # noqa: E731
     return jax.vmap(jax.vmap(one, (None, 0)), (0, None))(q_covs, r_covs)
@@ -285,8 +288,9 @@ def _argmax2(score: Array) -> Array:
     return jnp.stack([flat // J, flat % J]).astype(jnp.int32)
 
 
-def _one_update(local: LocalFilter, predicted: GaussianMixture, r_noise: GaussianMixture,
-                sel: Array, z: Array, t: Array) -> tuple[Array, Array, Array]:
+def _one_update(
+    local: LocalFilter, predicted: GaussianMixture, r_noise: GaussianMixture, sel: Array, z: Array, t: Array
+) -> tuple[Array, Array, Array]:
     """Kalman posterior of model ``M^{ij}`` (eqs 7–8) for ``sel = (i, j)``: ``(mean, cov, repaired)``."""
     i, j = sel[0], sel[1]
     st = local.init(predicted.means[i], predicted.covs[i])
@@ -295,8 +299,9 @@ def _one_update(local: LocalFilter, predicted: GaussianMixture, r_noise: Gaussia
     return mean, cov, info.repaired
 
 
-def _preload_update(h_lin: Linearize, mean: Array, preload_cov: Array, r_bar: Array,
-                    t: Array) -> tuple[Array, Array, Array]:
+def _preload_update(
+    h_lin: Linearize, mean: Array, preload_cov: Array, r_bar: Array, t: Array
+) -> tuple[Array, Array, Array]:
     """The data-independent update of the preloaded-gain recursion (Red-PKG, §IV-A 3).
 
     Returns:
@@ -309,9 +314,17 @@ def _preload_update(h_lin: Linearize, mean: Array, preload_cov: Array, r_bar: Ar
     return gaussian.symmetrize(Ap @ preload_cov @ Ap.T + Kp @ r_bar @ Kp.T), Kp, Sp
 
 
-def _gain_estimate(h_lin: Linearize, predicted: GaussianMixture, r_noise: GaussianMixture,
-                   q_lw: Array, r_lw: Array, K: Array, S: Array, z: Array,
-                   t: Array) -> tuple[Array, Array, Array]:
+def _gain_estimate(
+    h_lin: Linearize,
+    predicted: GaussianMixture,
+    r_noise: GaussianMixture,
+    q_lw: Array,
+    r_lw: Array,
+    K: Array,
+    S: Array,
+    z: Array,
+    t: Array,
+) -> tuple[Array, Array, Array]:
     """GSF-merge mean (eqs 9–10) with given gains (Red-PKG, Red-SSG).
 
     Args:
@@ -337,8 +350,16 @@ def _gain_estimate(h_lin: Linearize, predicted: GaussianMixture, r_noise: Gaussi
     return _merge(_weights_from_log(log_mu), xs), degenerate, jnp.any(rep)
 
 
-def _select(h_lin: Linearize, Gpinv: Array, q_noise: GaussianMixture, r_noise: GaussianMixture,
-            f_mean: Array, x_check: Array, z: Array, t: Array) -> Array:
+def _select(
+    h_lin: Linearize,
+    Gpinv: Array,
+    q_noise: GaussianMixture,
+    r_noise: GaussianMixture,
+    f_mean: Array,
+    x_check: Array,
+    z: Array,
+    t: Array,
+) -> Array:
     """Eqs 15–17: ``(i*, j*)`` ``(2,)`` int32 from the initial estimate ``x_check``."""
     v = Gpinv @ (x_check - f_mean)  # eq 15 (projected on the noise subspace)
     w = z - h_lin(x_check, t)[0]  # eq 16
@@ -346,7 +367,8 @@ def _select(h_lin: Linearize, Gpinv: Array, q_noise: GaussianMixture, r_noise: G
     qc = jnp.einsum("ab,kbc,dc->kad", Gpinv, q_noise.covs, Gpinv)
     lv = _noise_log_weights(q_noise) + jax.vmap(lambda mu, P: gaussian.logpdf(v, mu, P))(qm, qc)
     lw = _noise_log_weights(r_noise) + jax.vmap(lambda mu, P: gaussian.logpdf(w, mu, P))(
-        r_noise.means, r_noise.covs)
+        r_noise.means, r_noise.covs
+    )
     lv = jnp.where(q_noise.mask, lv, -jnp.inf)
     lw = jnp.where(r_noise.mask, lw, -jnp.inf)
     return jnp.stack([jnp.argmax(lv), jnp.argmax(lw)]).astype(jnp.int32)
@@ -393,16 +415,22 @@ def _init(cfg: _Static, params: BankParams, prior: GaussianMixture | None) -> Ba
     mean, cov = (a.astype(dtype) for a in gmm.moments(prior))
     q_noise, r_noise = _bank_noises(params.model, cfg.method)
     n_q = q_noise.capacity
-    predicted = gmm.sanitize(GaussianMixture(
-        jnp.exp(_noise_log_weights(q_noise)), jnp.broadcast_to(mean, (n_q, d)),
-        jnp.broadcast_to(cov, (n_q, d, d)), q_noise.mask))
+    predicted = gmm.sanitize(
+        GaussianMixture(
+            jnp.exp(_noise_log_weights(q_noise)),
+            jnp.broadcast_to(mean, (n_q, d)),
+            jnp.broadcast_to(cov, (n_q, d, d)),
+            q_noise.mask,
+        )
+    )
     ss_gain = ss_cov = None
     if cfg.method == "red-ssg":  # F and H at t = 1: the model must be time invariant
         t1 = jnp.ones((), jnp.int32)
         F1 = cfg.f_lin(jnp.zeros((d,), dtype), t1)[1]
         H1 = cfg.h_lin(jnp.zeros((d,), dtype), t1)[1]
         ss_gain, ss_cov = _pair_steady_state_gains(
-            q_noise.covs, r_noise.covs, F1, H1, gmm.cov(params.model.prior), cfg.ssg_iterations)
+            q_noise.covs, r_noise.covs, F1, H1, gmm.cov(params.model.prior), cfg.ssg_iterations
+        )
     return BankState(mean, cov, predicted, mean, cov, cov, ss_gain, ss_cov)
 
 
@@ -414,12 +442,20 @@ def _predict(cfg: _Static, params: BankParams, state: BankState, t: Array) -> Ba
     mean, cov = gmm.moments(predicted)
     preload = gaussian.symmetrize(F @ state.preload_cov @ F.T + _average_cov(q_noise))
     f_cov = gaussian.symmetrize(F @ state.cov @ F.T)
-    return state._replace(mean=mean, cov=cov, predicted=predicted, f_mean=fm, f_cov=f_cov,
-                          preload_cov=preload)
+    return state._replace(
+        mean=mean, cov=cov, predicted=predicted, f_mean=fm, f_cov=f_cov, preload_cov=preload
+    )
 
 
-def _reduce_full(cfg: _Static, q_noise: GaussianMixture, r_noise: GaussianMixture, state: BankState,
-                 up: Any, z: Array, t: Array) -> tuple[Array, Array, Array, Array]:
+def _reduce_full(
+    cfg: _Static,
+    q_noise: GaussianMixture,
+    r_noise: GaussianMixture,
+    state: BankState,
+    up: Any,
+    z: Array,
+    t: Array,
+) -> tuple[Array, Array, Array, Array]:
     """``gsf-merge``, ``gsf-remove``, ``red-gsfm``, ``red-gsfr``: reduce the full bank (eqs 10–17).
 
     Args:
@@ -445,9 +481,16 @@ def _reduce_full(cfg: _Static, q_noise: GaussianMixture, r_noise: GaussianMixtur
     return means[sel[0], sel[1]], covs[sel[0], sel[1]], x_check, sel  # eqs 13-14
 
 
-def _initial_estimate(cfg: _Static, params: BankParams, q_noise: GaussianMixture,
-                      r_noise: GaussianMixture, state: BankState, z: Array, t: Array,
-                      preload_gain: tuple[Array, Array]) -> tuple[Array, Array, Array]:
+def _initial_estimate(
+    cfg: _Static,
+    params: BankParams,
+    q_noise: GaussianMixture,
+    r_noise: GaussianMixture,
+    state: BankState,
+    z: Array,
+    t: Array,
+    preload_gain: tuple[Array, Array],
+) -> tuple[Array, Array, Array]:
     """``x̌_k`` of ``red-pkg``, ``red-ssg``, ``red-dkg`` (§IV-A 3–5): ``(x̌, degenerate, repaired)``.
 
     Args:
@@ -461,8 +504,17 @@ def _initial_estimate(cfg: _Static, params: BankParams, q_noise: GaussianMixture
         else:
             assert state.ss_gain is not None and state.ss_innovation_cov is not None  # red-ssg: set in init
             K, S = state.ss_gain, state.ss_innovation_cov
-        return _gain_estimate(cfg.h_lin, state.predicted, r_noise, _noise_log_weights(q_noise),
-                              _noise_log_weights(r_noise), K, S, z, t)
+        return _gain_estimate(
+            cfg.h_lin,
+            state.predicted,
+            r_noise,
+            _noise_log_weights(q_noise),
+            _noise_log_weights(r_noise),
+            K,
+            S,
+            z,
+            t,
+        )
     # red-dkg: one Kalman step on the moment-matched noises from (x̂_{k-1}, P_{k-1})
     q_mm_mean, q_mm_cov = gmm.moments(params.model.process_noise)
     kp = cfg.local.init(state.f_mean + q_mm_mean, gaussian.symmetrize(state.f_cov + q_mm_cov))
@@ -470,9 +522,16 @@ def _initial_estimate(cfg: _Static, params: BankParams, q_noise: GaussianMixture
     return cfg.local.moments(kf)[0], jnp.zeros((), bool), kinfo.repaired
 
 
-def _reduce_single(cfg: _Static, params: BankParams, q_noise: GaussianMixture,
-                   r_noise: GaussianMixture, state: BankState, z: Array, inputs: StepInputs,
-                   preload_gain: tuple[Array, Array]) -> tuple[Array, ...]:
+def _reduce_single(
+    cfg: _Static,
+    params: BankParams,
+    q_noise: GaussianMixture,
+    r_noise: GaussianMixture,
+    state: BankState,
+    z: Array,
+    inputs: StepInputs,
+    preload_gain: tuple[Array, Array],
+) -> tuple[Array, ...]:
     """``matched``, ``kf-mm``, ``red-pkg``, ``red-ssg``, ``red-dkg``: choose ``(i, j)`` (eq 17 for
     the ``red-*``), then run that one Kalman filter (eqs 7–8).
 
@@ -488,16 +547,18 @@ def _reduce_single(cfg: _Static, params: BankParams, q_noise: GaussianMixture,
     elif cfg.method == "kf-mm":
         sel = jnp.zeros((2,), jnp.int32)
     else:
-        x_check, degenerate, repaired = _initial_estimate(cfg, params, q_noise, r_noise, state, z, t,
-                                                          preload_gain)
+        x_check, degenerate, repaired = _initial_estimate(
+            cfg, params, q_noise, r_noise, state, z, t, preload_gain
+        )
         assert cfg.Gpinv is not None  # set for every red-* method
         sel = _select(cfg.h_lin, cfg.Gpinv, q_noise, r_noise, state.f_mean, x_check, z, t)
     mean, cov, rep = _one_update(cfg.local, state.predicted, r_noise, sel, z, t)
     return mean, cov, mean if x_check is None else x_check, sel, degenerate, repaired | rep
 
 
-def _update(cfg: _Static, params: BankParams, state: BankState, z: Array,
-            inputs: StepInputs) -> tuple[BankState, StepInfo]:
+def _update(
+    cfg: _Static, params: BankParams, state: BankState, z: Array, inputs: StepInputs
+) -> tuple[BankState, StepInfo]:
     """The bank (eqs 7–9), the reduction of ``cfg.method`` and the preloaded-gain update."""
     q_noise, r_noise = _bank_noises(params.model, cfg.method)
     t = inputs.t
@@ -506,26 +567,35 @@ def _update(cfg: _Static, params: BankParams, state: BankState, z: Array,
     # the full bank of eqs 7-9 (its normaliser is the log-likelihood of every method)
     up = gs_update(cfg.local, state.predicted, z, t, r_noise)
     zs = jnp.where(missing, cfg.h_lin(state.mean, t)[0] + gmm.mean(r_noise), z)
-    preload_post, Kp, Sp = _preload_update(cfg.h_lin, state.mean, state.preload_cov,
-                                           _average_cov(r_noise), t)
+    preload_post, Kp, Sp = _preload_update(cfg.h_lin, state.mean, state.preload_cov, _average_cov(r_noise), t)
     if cfg.method in _FULL_BANK:
         mean, cov, x_check, sel = _reduce_full(cfg, q_noise, r_noise, state, up, zs, t)
         degenerate, repaired = up.degenerate, up.repaired
     else:
         mean, cov, x_check, sel, degenerate, repaired = _reduce_single(
-            cfg, params, q_noise, r_noise, state, zs, inputs, (Kp, Sp))
+            cfg, params, q_noise, r_noise, state, zs, inputs, (Kp, Sp)
+        )
     # predict-only step: the moment-matched prediction for every method
     mean = jnp.where(missing, state.mean, mean)
     cov, rep_c = repair_cov(jnp.where(missing, state.cov, cov))
     sel = jnp.where(missing, jnp.full((2,), -1, jnp.int32), sel)
     x_check = jnp.where(missing, state.mean, x_check)
-    new = state._replace(mean=mean, cov=cov,
-                         preload_cov=jnp.where(missing, state.preload_cov, preload_post))
-    flags = StepFlags(repaired=(repaired | rep_c) & ~missing, overflow=jnp.zeros((), bool),
-                      degenerate=degenerate & ~missing, nonfinite_measurement=missing)
-    info = StepInfo(mean=mean, cov=cov, loglik=up.loglik, n_components=jnp.ones((), jnp.int32),
-                    flags=flags, reduction=None,
-                    extra={"initial": x_check, "active": sel, "missing": missing})
+    new = state._replace(mean=mean, cov=cov, preload_cov=jnp.where(missing, state.preload_cov, preload_post))
+    flags = StepFlags(
+        repaired=(repaired | rep_c) & ~missing,
+        overflow=jnp.zeros((), bool),
+        degenerate=degenerate & ~missing,
+        nonfinite_measurement=missing,
+    )
+    info = StepInfo(
+        mean=mean,
+        cov=cov,
+        loglik=up.loglik,
+        n_components=jnp.ones((), jnp.int32),
+        flags=flags,
+        reduction=None,
+        extra={"initial": x_check, "active": sel, "missing": missing},
+    )
     return new, info
 
 
@@ -585,21 +655,25 @@ def build_bank(
     check_model(model)
     f_lin, h_lin = affine_parts(model.f), affine_parts(model.h)
     Gpinv = _resolve_noise_gain(noise_gain, model.process_noise) if method.startswith("red-") else None
-    cfg = _Static(method, model.state_dim, f_lin, h_lin, linearized_filter(f_lin, h_lin), Gpinv,
-                  ssg_iterations)
+    cfg = _Static(
+        method, model.state_dim, f_lin, h_lin, linearized_filter(f_lin, h_lin), Gpinv, ssg_iterations
+    )
 
-    def init(params: BankParams, prior: GaussianMixture | None = None, *,
-             key: PRNGKey | None = None) -> BankState:
+    def init(
+        params: BankParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None
+    ) -> BankState:
         del key
         return _init(cfg, params, prior)
 
-    def predict(params: BankParams, state: BankState, inputs: StepInputs, *,
-                key: PRNGKey | None = None) -> BankState:
+    def predict(
+        params: BankParams, state: BankState, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> BankState:
         del key
         return _predict(cfg, params, state, inputs.t)
 
-    def update(params: BankParams, state: BankState, z: Array, inputs: StepInputs, *,
-               key: PRNGKey | None = None) -> tuple[BankState, StepInfo]:
+    def update(
+        params: BankParams, state: BankState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> tuple[BankState, StepInfo]:
         del key
         return _update(cfg, params, state, z, inputs)
 

@@ -165,7 +165,8 @@ def measurement_dim(params: Any) -> int | None:
 
     def found(x):
         return isinstance(x, LinearGaussianParams) or isinstance(
-            getattr(x, "measurement_noise", None), GaussianMixture)
+            getattr(x, "measurement_noise", None), GaussianMixture
+        )
 
     for node in jax.tree_util.tree_leaves(params, is_leaf=found):
         if isinstance(node, LinearGaussianParams):

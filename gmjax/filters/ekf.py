@@ -1,5 +1,4 @@
-"""Extended Kalman filter: first-order linearisation at the mean (seed 000 eqs 3–18 per component).
-"""
+"""Extended Kalman filter: first-order linearisation at the mean (seed 000 eqs 3–18 per component)."""
 
 from __future__ import annotations
 
@@ -16,8 +15,13 @@ from gmjax.models.base import StateSpaceModel, as_step_fn
 __all__ = ["local_ekf", "build_ekf"]
 
 
-def local_ekf(f: StepFn, h: StepFn, f_jacobian: StepFn | None = None, h_jacobian: StepFn | None = None,
-              angle_dims: tuple[int, ...] = ()) -> LocalFilter:
+def local_ekf(
+    f: StepFn,
+    h: StepFn,
+    f_jacobian: StepFn | None = None,
+    h_jacobian: StepFn | None = None,
+    angle_dims: tuple[int, ...] = (),
+) -> LocalFilter:
     """Extended Kalman filter (first-order linearisation at the mean; seed 000 eqs 3–18 per component).
 
     Args:

@@ -133,9 +133,11 @@ def gs_predict(local: LocalFilter, gm: GaussianMixture, t: Any, noise: GaussianM
     log_w = gmm.log_weights(gm)[:, None] + _noise_log_weights(noise)[None, :]
     mask = gm.mask[:, None] & noise.mask[None, :]
     d = gm.dim
-    return gmm.sanitize(GaussianMixture(
-        jnp.exp(log_w).reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1)
-    ))
+    return gmm.sanitize(
+        GaussianMixture(
+            jnp.exp(log_w).reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1)
+        )
+    )
 
 
 class GSUpdate(NamedTuple):
@@ -177,15 +179,15 @@ def gs_update(local: LocalFilter, gm: GaussianMixture, z: Array, t: Any, noise: 
     log_w_norm = jnp.where(degenerate, logsumexp(log_prior), log_norm)
     weights = jnp.where(mask, jnp.exp(log_w - log_w_norm), 0.0)
     d = gm.dim
-    full = gmm.sanitize(GaussianMixture(
-        weights.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1)
-    ))
-    return GSUpdate(full, jnp.where(missing, 0.0, log_norm), degenerate,
-                    jnp.any(repaired & mask), missing)
+    full = gmm.sanitize(
+        GaussianMixture(weights.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1))
+    )
+    return GSUpdate(full, jnp.where(missing, 0.0, log_norm), degenerate, jnp.any(repaired & mask), missing)
 
 
-def reduce_to_capacity(reducer: Any, gm: GaussianMixture, state: Any, capacity: int, *,
-                       key: PRNGKey | None) -> tuple[GaussianMixture, Any, Any, Array]:
+def reduce_to_capacity(
+    reducer: Any, gm: GaussianMixture, state: Any, capacity: int, *, key: PRNGKey | None
+) -> tuple[GaussianMixture, Any, Any, Array]:
     """Call ``reducer.reduce`` and fit the result to ``capacity`` slots.
 
     Returns:
@@ -256,24 +258,28 @@ def build_gsf(
         reducer = PruneTop(num_out=capacity, capacity=capacity)
     n_q, n_r = model.process_noise.capacity, model.measurement_noise.capacity
 
-    def init(params: GSFParams, prior: GaussianMixture | None = None, *,
-             key: PRNGKey | None = None) -> GSFState:
+    def init(
+        params: GSFParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None
+    ) -> GSFState:
         del key
         fitted = check_prior(params.model.prior if prior is None else prior, capacity)
         return GSFState(fitted, params.reducer.init(capacity))
 
-    def predict(params: GSFParams, state: GSFState, inputs: StepInputs, *,
-                key: PRNGKey | None = None) -> GSFState:
+    def predict(
+        params: GSFParams, state: GSFState, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> GSFState:
         del key
         noise = model.noise_at(params.model.process_noise, inputs)  # e.g. Q(dt)
         predicted = gs_predict(local, state.mixture, inputs, noise)
         return GSFState(predicted, inherit(state.reducer_state, n_q))
 
-    def update(params: GSFParams, state: GSFState, z: Array, inputs: StepInputs, *,
-               key: PRNGKey | None = None) -> tuple[GSFState, StepInfo]:
+    def update(
+        params: GSFParams, state: GSFState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> tuple[GSFState, StepInfo]:
         up = gs_update(local, state.mixture, z, inputs, params.model.measurement_noise)
         reduced, rstate, rinfo, overflow = reduce_to_capacity(
-            params.reducer, up.mixture, inherit(state.reducer_state, n_r), capacity, key=key)
+            params.reducer, up.mixture, inherit(state.reducer_state, n_r), capacity, key=key
+        )
         if truncate_only:
             overflow = overflow | (rinfo.n_in > capacity)
         mean, cov = gmm.moments(up.mixture)

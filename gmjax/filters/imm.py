@@ -83,8 +83,6 @@ class IMMState(NamedTuple):
     log_probs: Array
 
 
-
-
 def _log(p):
     pos = p > 0
     return jnp.where(pos, jnp.log(jnp.where(pos, p, 1.0)), -jnp.inf)
@@ -233,7 +231,8 @@ def build_imm(
 
     def pred_branch(j: int) -> Callable:
         return lambda p, s, t: locals_[j].predict(
-            s, t, *gaussian_moments(models[j].noise_at(p.models[j].process_noise, t)))
+            s, t, *gaussian_moments(models[j].noise_at(p.models[j].process_noise, t))
+        )
 
     def upd_branch(j: int) -> Callable:
         return lambda p, s, z, t: locals_[j].update(s, z, t, *gaussian_moments(p.models[j].measurement_noise))
@@ -248,8 +247,9 @@ def build_imm(
         states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (M,) + a.shape), one)
         return IMMState(states, _log(params.initial_probs).astype(mean.dtype))
 
-    def predict(params: IMMParams, state: IMMState, inputs: StepInputs, *,
-                key: PRNGKey | None = None) -> IMMState:
+    def predict(
+        params: IMMParams, state: IMMState, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> IMMState:
         del key
         log_c, mixed = _mix(base, state.states, state.log_probs, _log(params.transition))
 
@@ -259,8 +259,9 @@ def build_imm(
 
         return IMMState(jax.lax.map(one, (jnp.arange(M), mixed)), log_c)
 
-    def update(params: IMMParams, state: IMMState, z: Array, inputs: StepInputs, *,
-               key: PRNGKey | None = None) -> tuple[IMMState, StepInfo]:
+    def update(
+        params: IMMParams, state: IMMState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> tuple[IMMState, StepInfo]:
         del key
         z = jnp.asarray(z)
 
@@ -273,8 +274,12 @@ def build_imm(
         new = IMMState(states, log_mu)
         mean, cov = moments(new)
         flags = StepFlags(jnp.any(infos.repaired), jnp.zeros((), bool), degenerate, is_missing(z))
-        extra = {"model_probs": jnp.exp(log_mu), "model_loglik": infos.loglik,
-                 "innovation": infos.innovation, "innovation_cov": infos.innovation_cov}
+        extra = {
+            "model_probs": jnp.exp(log_mu),
+            "model_loglik": infos.loglik,
+            "innovation": infos.innovation,
+            "innovation_cov": infos.innovation_cov,
+        }
         return new, StepInfo(mean, cov, loglik, jnp.asarray(M, jnp.int32), flags, None, extra)
 
     return Filter(init, predict, update, params0)
@@ -385,8 +390,15 @@ def _imm_gsf_info(log_mu: Array, loglik: Array, infos: StepInfo) -> StepInfo:
         "ise": jnp.sum(mu * infos.extra["ise"]),
         "mode_reduction": infos.reduction,
     }
-    return StepInfo(mean, cov, loglik, jnp.sum(infos.n_components).astype(jnp.int32), flags,
-                    _combine_reduction(infos.reduction, mu), extra)
+    return StepInfo(
+        mean,
+        cov,
+        loglik,
+        jnp.sum(infos.n_components).astype(jnp.int32),
+        flags,
+        _combine_reduction(infos.reduction, mu),
+        extra,
+    )
 
 
 def build_imm_gsf(
@@ -473,13 +485,16 @@ def build_imm_gsf(
     M = len(models)
     counts = {(m.process_noise.capacity, m.measurement_noise.capacity) for m in models}
     if len(counts) != 1:
-        raise ValueError(f"models: all models must have the same numbers of (process, measurement) "
-                         f"noise components, got {sorted(counts)}")
+        raise ValueError(
+            f"models: all models must have the same numbers of (process, measurement) "
+            f"noise components, got {sorted(counts)}"
+        )
     gsfs = [build_gsf(m, local, reducer, capacity, track_ise=track_ise) for m in models]
     reducer = PruneTop(num_out=capacity) if check_reducer(reducer) is None else reducer
     dtype = models[0].prior.means.dtype
-    params0 = IMMGSFParams(tuple(m.params for m in models), reducer, jnp.asarray(Pt, dtype),
-                           jnp.asarray(mu0, dtype))
+    params0 = IMMGSFParams(
+        tuple(m.params for m in models), reducer, jnp.asarray(Pt, dtype), jnp.asarray(mu0, dtype)
+    )
 
     def pred_branch(j: int) -> Callable:
         g = gsfs[j]
@@ -492,15 +507,17 @@ def build_imm_gsf(
     pred_branches = [pred_branch(j) for j in range(M)]
     upd_branches = [upd_branch(j) for j in range(M)]
 
-    def init(params: IMMGSFParams, prior: GaussianMixture | None = None, *,
-             key: PRNGKey | None = None) -> IMMGSFState:
+    def init(
+        params: IMMGSFParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None
+    ) -> IMMGSFState:
         prior = params.models[0].prior if prior is None else prior
         one = gsfs[0].init(GSFParams(params.models[0], params.reducer), prior, key=key)
         modes = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (M,) + a.shape), one)
         return IMMGSFState(modes, _log(params.initial_probs).astype(prior.means.dtype))
 
-    def predict(params: IMMGSFParams, state: IMMGSFState, inputs: StepInputs, *,
-                key: PRNGKey | None = None) -> IMMGSFState:
+    def predict(
+        params: IMMGSFParams, state: IMMGSFState, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> IMMGSFState:
         gm = state.modes.mixture  # (M, K, ...)
         log_c, w, mask = _mix_mixtures(gm, state.log_probs, _log(params.transition))
         means, covs = _slots_flat(gm.means, M), _slots_flat(gm.covs, M)
@@ -514,8 +531,9 @@ def build_imm_gsf(
         modes = jax.lax.map(one, (jnp.arange(M), w, mask, _split(key, M)))
         return IMMGSFState(modes, log_c)
 
-    def update(params: IMMGSFParams, state: IMMGSFState, z: Array, inputs: StepInputs, *,
-               key: PRNGKey | None = None) -> tuple[IMMGSFState, StepInfo]:
+    def update(
+        params: IMMGSFParams, state: IMMGSFState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> tuple[IMMGSFState, StepInfo]:
         z = jnp.asarray(z)
 
         def one(args):

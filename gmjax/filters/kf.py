@@ -88,7 +88,9 @@ class LinearGaussianParams(NamedTuple):
     prior_cov: jax.Array  # (d, d)
 
 
-def kalman_filter(F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, prior_mean: ArrayLike, prior_cov: ArrayLike) -> Filter:
+def kalman_filter(
+    F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, prior_mean: ArrayLike, prior_cov: ArrayLike
+) -> Filter:
     """A time-invariant Kalman filter built from arrays; ``params`` is a :class:`LinearGaussianParams`.
 
     The update is the Joseph form of :func:`local_kf`. Replace ``filter.params`` (or pass
@@ -101,8 +103,7 @@ def kalman_filter(F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, prior_
     params = LinearGaussianParams(*(jnp.asarray(a) for a in (F, H, Q, R, prior_mean, prior_cov)))
     d = params.F.shape[0] if params.F.ndim == 2 else -1
     m = params.H.shape[0] if params.H.ndim == 2 else -1
-    expected = {"F": (d, d), "H": (m, d), "Q": (d, d), "R": (m, m), "prior_mean": (d,),
-                "prior_cov": (d, d)}
+    expected = {"F": (d, d), "H": (m, d), "Q": (d, d), "R": (m, m), "prior_mean": (d,), "prior_cov": (d, d)}
     for name, shape in expected.items():
         if getattr(params, name).shape != shape or min(shape) < 1:
             raise ValueError(

@@ -16,6 +16,7 @@ from gmjax.models.base import StateSpaceModel
 
 __all__ = ["LOCAL_FILTERS", "local_filter_for", "LocalFilter", "gaussian_moments"]
 
+
 def _fh(m: StateSpaceModel) -> tuple[Callable, Callable]:
     f, h, _, _ = m.step_fns()
     return f, h

@@ -231,9 +231,7 @@ def _process_sampler(noise: Any) -> _ProcessSampler:
     if noise is None or isinstance(noise, GaussianMixture):
         return lambda gm, key, shape, t: _gm_sampler(gm)(key, shape)
     if isinstance(noise, TimedSampler):
-        return lambda gm, key, shape, t: jax.vmap(lambda k: noise.fn(k, t))(
-            jax.random.split(key, shape[0])
-        )
+        return lambda gm, key, shape, t: jax.vmap(lambda k: noise.fn(k, t))(jax.random.split(key, shape[0]))
     if callable(noise):
         return lambda gm, key, shape, t: noise(key, shape)
     raise ValueError(
@@ -250,8 +248,7 @@ def _measurement_logpdf(noise: Any) -> Callable[[GaussianMixture], Callable[[Arr
     if callable(noise):
         return lambda gm: noise
     raise ValueError(
-        "measurement_noise: expected a GaussianMixture or a log-density w -> (), "
-        f"got {type(noise).__name__}"
+        f"measurement_noise: expected a GaussianMixture or a log-density w -> (), got {type(noise).__name__}"
     )
 
 
@@ -312,8 +309,13 @@ def _check_build_args(n_particles, resampling, ess_threshold, bandwidth_scale) -
         raise ValueError(f"bandwidth_scale: must be > 0, got {bandwidth_scale!r}")
 
 
-def _default_params(model: StateSpaceModel, process_noise: Any, measurement_noise: Any,
-                    ess_threshold: float, bandwidth_scale: float) -> PFParams:
+def _default_params(
+    model: StateSpaceModel,
+    process_noise: Any,
+    measurement_noise: Any,
+    ess_threshold: float,
+    bandwidth_scale: float,
+) -> PFParams:
     """``filter.params``: the model's parameters with any GM noise override in place."""
     base = model.params
     if isinstance(process_noise, GaussianMixture):
@@ -385,8 +387,9 @@ def build_pf(
     hv = jax.vmap(h_step, in_axes=(0, None))
     angle_dims = tuple(model.angle_dims)
 
-    def init(params: PFParams, prior: GaussianMixture | None = None, *,
-             key: PRNGKey | None = None) -> PFState:
+    def init(
+        params: PFParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None
+    ) -> PFState:
         key = _require_key(key, "init")
         prior = params.model.prior if prior is None else prior
         if not isinstance(prior, GaussianMixture):
@@ -394,15 +397,17 @@ def build_pf(
         x = _gm_sampler(prior)(key, (N,))
         return PFState(x, jnp.full((N,), -jnp.log(N), x.dtype))
 
-    def predict(params: PFParams, state: PFState, inputs: StepInputs, *,
-                key: PRNGKey | None = None) -> PFState:
+    def predict(
+        params: PFParams, state: PFState, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> PFState:
         key = _require_key(key, "predict")
         noise = model.noise_at(params.model.process_noise, inputs)  # e.g. Q(dt)
         v = sample_v(noise, key, (N,), inputs.t).astype(state.particles.dtype)
         return PFState(fv(state.particles, inputs) + v, state.log_weights)
 
-    def update(params: PFParams, state: PFState, z: Array, inputs: StepInputs, *,
-               key: PRNGKey | None = None) -> tuple[PFState, StepInfo]:
+    def update(
+        params: PFParams, state: PFState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
+    ) -> tuple[PFState, StepInfo]:
         key = _require_key(key, "update")
         z = jnp.asarray(z)
         missing = is_missing(z)
@@ -424,8 +429,9 @@ def build_pf(
         no = jnp.zeros((), bool)
         collapsed = (ess < _COLLAPSED_ESS) & ~missing if N > 1 else no
         flags = StepFlags(no, no, degenerate | collapsed, missing)
-        info = StepInfo(mean, cov, loglik, jnp.ones((), jnp.int32), flags,
-                        None, {"ess": ess, "resampled": do_rs})
+        info = StepInfo(
+            mean, cov, loglik, jnp.ones((), jnp.int32), flags, None, {"ess": ess, "resampled": do_rs}
+        )
         return new, info
 
     params = _default_params(model, process_noise, measurement_noise, ess_threshold, bandwidth_scale)

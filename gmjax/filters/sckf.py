@@ -112,18 +112,12 @@ def local_sckf(f: StepFn, h: StepFn, angle_dims: tuple[int, ...] = ()) -> LocalF
         chi = (X - m).T * scale  # eq 19
         Pxz = chi @ Zc.T  # eq 18
         # eq 20: W = (Pxz / S_zz^T) / S_zz, i.e. W = Pxz (S_zz S_zz^T)^{-1}
-        W = solve_triangular(
-            S_zz.T, solve_triangular(S_zz, Pxz.T, lower=True), lower=False
-        ).T
+        W = solve_triangular(S_zz.T, solve_triangular(S_zz, Pxz.T, lower=True), lower=False).T
         y = wrap_angles(z - z_hat, angle_dims)
         mean = m + W @ y  # eq 21
-        S_new, bad_post = _fix_factor(
-            tria(jnp.concatenate([chi - W @ Zc, W @ S_R], axis=1))
-        )  # eq 22
+        S_new, bad_post = _fix_factor(tria(jnp.concatenate([chi - W @ Zc, W @ S_R], axis=1)))  # eq 22
         ll = loglik_from_chol(y, S_zz)
-        info = finish_info(
-            missing, ll, y, S_zz @ S_zz.T, chol_R.repaired | bad_zz | bad_post
-        )
+        info = finish_info(missing, ll, y, S_zz @ S_zz.T, chol_R.repaired | bad_zz | bad_post)
         return select_state(missing, state, SqrtState(mean, S_new)), info
 
     return LocalFilter(_sqrt_init, predict, update, _sqrt_moments)

@@ -19,13 +19,12 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_sgkf", "build_sgkf"]
 
 
-def local_sgkf(f: StepFn, h: StepFn, level: int = 2, growth: str = "linear",
-               angle_dims: tuple[int, ...] = ()) -> LocalFilter:
+def local_sgkf(
+    f: StepFn, h: StepFn, level: int = 2, growth: str = "linear", angle_dims: tuple[int, ...] = ()
+) -> LocalFilter:
     """Sparse-grid (Smolyak Gauss–Hermite) quadrature KF (seed 002 §II-C)."""
     quadrature.smolyak(1, level, growth)  # validate eagerly
-    return local_sigma(
-        f, h, lambda d, dtype: quadrature.smolyak(d, level, growth, dtype=dtype), angle_dims
-    )
+    return local_sigma(f, h, lambda d, dtype: quadrature.smolyak(d, level, growth, dtype=dtype), angle_dims)
 
 
 def build_sgkf(model: StateSpaceModel, level: int = 2, growth: str = "linear") -> Filter:

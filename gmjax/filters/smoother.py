@@ -38,8 +38,14 @@ from gmjax.filters.base import StepInputs, step_inputs
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import StateSpaceModel
 
-__all__ = ["SmootherResult", "GSSmootherResult", "rts_smoother", "rts_linear", "gaussian_sum_smoother",
-           "predict_with_cross"]
+__all__ = [
+    "SmootherResult",
+    "GSSmootherResult",
+    "rts_smoother",
+    "rts_linear",
+    "gaussian_sum_smoother",
+    "predict_with_cross",
+]
 
 
 class SmootherResult(NamedTuple):
@@ -69,12 +75,14 @@ def _sigma_rule(method: Any):
             return rule_getter(lambda d, dtype: quadrature.gauss_hermite(d, 3, dtype=dtype))
         raise ValueError(
             f"method: expected 'kf', 'ekf', 'ukf', 'ckf', 'ghkf' or a quadrature.SigmaPoints rule, "
-            f"got {method!r}")
+            f"got {method!r}"
+        )
     return rule_getter(method)
 
 
-def predict_with_cross(f: Callable[[Array, Any], Array], f_jacobian: Callable[[Array, Any], Array] | None,
-                       method: Any) -> Callable[..., tuple[Array, Array, Array]]:
+def predict_with_cross(
+    f: Callable[[Array, Any], Array], f_jacobian: Callable[[Array, Any], Array] | None, method: Any
+) -> Callable[..., tuple[Array, Array, Array]]:
     """``(m (d,), P (d, d), inputs, q_mean, Q) -> (m^-, P^-, C)`` with ``C = Cov(x_k, x_{k+1})``.
 
     Args:
@@ -115,11 +123,18 @@ def _gain(C: Array, P_pred: Array) -> Array:
 def _rts_scan(backward, means: Array, covs: Array, xs_next) -> SmootherResult:
     """The backward pass for ``k = T-2 .. 0``; ``backward(m_k, P_k, next_k) -> (m^-, P^-, C)``."""
     (_, _), (ms, Ps, G, Pp) = jax.lax.scan(
-        lambda c, x: _rts_body(backward, c, x), (means[-1], covs[-1]),
-        (means[:-1], covs[:-1], xs_next), reverse=True)
+        lambda c, x: _rts_body(backward, c, x),
+        (means[-1], covs[-1]),
+        (means[:-1], covs[:-1], xs_next),
+        reverse=True,
+    )
     zeros = jnp.zeros_like(covs[:1])
-    return SmootherResult(jnp.concatenate([ms, means[-1:]]), jnp.concatenate([Ps, covs[-1:]]),
-                          jnp.concatenate([G, zeros]), jnp.concatenate([Pp, zeros]))
+    return SmootherResult(
+        jnp.concatenate([ms, means[-1:]]),
+        jnp.concatenate([Ps, covs[-1:]]),
+        jnp.concatenate([G, zeros]),
+        jnp.concatenate([Pp, zeros]),
+    )
 
 
 def _rts_body(backward, carry, xs):
@@ -136,7 +151,8 @@ def _check_moments(means, covs) -> tuple[Array, Array]:
     means, covs = jnp.asarray(means), jnp.asarray(covs)
     if means.ndim != 2 or covs.shape != means.shape + means.shape[-1:]:
         raise ValueError(
-            f"means, covs: expected shapes (T, d) and (T, d, d), got {means.shape} and {covs.shape}")
+            f"means, covs: expected shapes (T, d) and (T, d, d), got {means.shape} and {covs.shape}"
+        )
     if means.shape[0] < 1:
         raise ValueError("means: need at least one step")
     return means, covs
@@ -234,18 +250,24 @@ class GSSmootherResult(NamedTuple):
     reduction: Any
 
 
-def _gs_backward_step(pred, filtered: GaussianMixture, smoothed: GaussianMixture, inp,
-                      noise: GaussianMixture) -> GaussianMixture:
+def _gs_backward_step(
+    pred, filtered: GaussianMixture, smoothed: GaussianMixture, inp, noise: GaussianMixture
+) -> GaussianMixture:
     """The ``K·L·S`` smoothed components of entry ``k`` (see :func:`gaussian_sum_smoother`)."""
+
     def pair(m, P, qm, qP):
         m_pred, P_pred, C = pred(m, P, inp, qm, qP)
         return m_pred, P_pred, _gain(C, P_pred)
 
     over_l = jax.vmap(pair, (None, None, 0, 0))
     m_pred, P_pred, G = jax.vmap(over_l, (0, 0, None, None))(
-        filtered.means, filtered.covs, noise.means, noise.covs)  # (K, L, d), (K, L, d, d)
-    log_pair = (gmm.log_weights(filtered)[:, None] + gmm.log_weights(noise)[None, :]
-                - logsumexp(gmm.log_weights(noise)))  # (K, L)
+        filtered.means, filtered.covs, noise.means, noise.covs
+    )  # (K, L, d), (K, L, d, d)
+    log_pair = (
+        gmm.log_weights(filtered)[:, None]
+        + gmm.log_weights(noise)[None, :]
+        - logsumexp(gmm.log_weights(noise))
+    )  # (K, L)
     pair_mask = filtered.mask[:, None] & noise.mask[None, :]
 
     def one_s(mu, Sig):
@@ -265,8 +287,9 @@ def _gs_backward_step(pred, filtered: GaussianMixture, smoothed: GaussianMixture
     mask = smoothed.mask[:, None, None] & pair_mask[None]
     d = filtered.dim
     w = jnp.where(mask, jnp.exp(logw - logsumexp(jnp.where(mask, logw, -jnp.inf))), 0.0)
-    return gmm.sanitize(GaussianMixture(w.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d),
-                                        mask.reshape(-1)))
+    return gmm.sanitize(
+        GaussianMixture(w.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1))
+    )
 
 
 def gaussian_sum_smoother(
@@ -318,7 +341,8 @@ def gaussian_sum_smoother(
     check_model(model)
     if not isinstance(mixtures, GaussianMixture) or mixtures.means.ndim != 3:
         raise ValueError(
-            "mixtures: expected a GaussianMixture with a leading T axis (states.mixture of a GSF run)")
+            "mixtures: expected a GaussianMixture with a leading T axis (states.mixture of a GSF run)"
+        )
     T, K, d = mixtures.means.shape
     capacity = K if capacity is None else capacity
     if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:

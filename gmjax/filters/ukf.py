@@ -19,8 +19,14 @@ from gmjax.models.base import StateSpaceModel
 __all__ = ["local_ukf", "build_ukf"]
 
 
-def local_ukf(f: StepFn, h: StepFn, alpha: float = 1.0, beta: float = 0.0, kappa: float | None = None,
-              angle_dims: tuple[int, ...] = ()) -> LocalFilter:
+def local_ukf(
+    f: StepFn,
+    h: StepFn,
+    alpha: float = 1.0,
+    beta: float = 0.0,
+    kappa: float | None = None,
+    angle_dims: tuple[int, ...] = (),
+) -> LocalFilter:
     """Unscented KF with the scaled UT (seed 002 eqs 27–32; defaults of :func:`quadrature.unscented`).
 
     FilterPy's ``MerweScaledSigmaPoints(d, alpha, beta, kappa)`` is the same point set.

@@ -48,8 +48,9 @@ def call_convention(fn: Callable, call: str = "auto", name: str = "f") -> str:
     kinds = [p.kind for p in params]
     if inspect.Parameter.VAR_POSITIONAL in kinds:
         return "t"
-    n_pos = sum(k in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
-                for k in kinds)
+    n_pos = sum(
+        k in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD) for k in kinds
+    )
     return "u,t" if n_pos == 3 else "t"
 
 
@@ -83,12 +84,15 @@ def as_step_fn(fn: Callable | None, call: str = "auto", name: str = "f") -> Call
     conv = call_convention(fn, call, name)
 
     if conv == "t":
+
         def g(x, s):
             return fn(x, s.t if _is_step_inputs(s) else s)
     elif conv == "u,t":
+
         def g(x, s):
             return fn(x, s.control, s.t) if _is_step_inputs(s) else fn(x, None, s)
     else:
+
         def g(x, s):
             if _is_step_inputs(s):
                 return fn(x, s)
@@ -162,9 +166,12 @@ class StateSpaceModel(NamedTuple):
 
     def step_fns(self) -> tuple[Callable, Callable, Callable | None, Callable | None]:
         """``(f, h, f_jacobian, h_jacobian)`` as ``g(x, inputs)`` (see :func:`as_step_fn`)."""
-        return (as_step_fn(self.f, self.call, "f"), as_step_fn(self.h, self.call, "h"),
-                as_step_fn(self.f_jacobian, self.call, "f_jacobian"),
-                as_step_fn(self.h_jacobian, self.call, "h_jacobian"))
+        return (
+            as_step_fn(self.f, self.call, "f"),
+            as_step_fn(self.h, self.call, "h"),
+            as_step_fn(self.f_jacobian, self.call, "f_jacobian"),
+            as_step_fn(self.h_jacobian, self.call, "h_jacobian"),
+        )
 
     def noise_at(self, noise: GaussianMixture, inputs: Any) -> GaussianMixture:
         """The step's process noise: ``process_noise_at(noise, inputs)``, or ``noise`` unchanged."""
@@ -323,11 +330,16 @@ def scenario_from_model(
         return gmm.sample(gm, key, 1)[0]
 
     return Scenario(
-        name=name, model=model, n_steps=n_steps,
+        name=name,
+        model=model,
+        n_steps=n_steps,
         sample_initial=sample_initial or (lambda key: draw(model.prior, key)),
         sample_process_noise=sample_process_noise
         or (lambda key, inp: draw(model.noise_at(model.process_noise, inp), key)),
         sample_measurement_noise=sample_measurement_noise
         or (lambda key, inp: draw(model.measurement_noise, key)),
-        position_dims=position_dims, description=description, inputs=inputs, noise_takes_inputs=True,
+        position_dims=position_dims,
+        description=description,
+        inputs=inputs,
+        noise_takes_inputs=True,
     )

@@ -193,8 +193,14 @@ def nth_derivative(order: int, ndim: int = 1, q: ArrayLike = 1.0) -> MotionModel
         return F(jnp.asarray(dt, x.dtype)) @ x
 
     names = {1: "constant velocity", 2: "constant acceleration"}
-    return MotionModel(f, Q, n * ndim, tuple(range(0, n * ndim, n)), F,
-                       f"{names.get(order, f'constant derivative {order}')} ({ndim}-D)")
+    return MotionModel(
+        f,
+        Q,
+        n * ndim,
+        tuple(range(0, n * ndim, n)),
+        F,
+        f"{names.get(order, f'constant derivative {order}')} ({ndim}-D)",
+    )
 
 
 def constant_velocity(ndim: int = 2, q: ArrayLike = 1.0) -> MotionModel:
@@ -225,11 +231,13 @@ def random_walk(ndim: int = 1, q: ArrayLike = 1.0) -> MotionModel:
 def _singer_F(alpha: float, dt: Array) -> Array:
     e = jnp.exp(-alpha * dt)
     one, zero = jnp.ones_like(dt), jnp.zeros_like(dt)
-    return jnp.stack([
-        jnp.stack([one, dt, (alpha * dt - 1 + e) / alpha**2]),
-        jnp.stack([zero, one, (1 - e) / alpha]),
-        jnp.stack([zero, zero, e]),
-    ])
+    return jnp.stack(
+        [
+            jnp.stack([one, dt, (alpha * dt - 1 + e) / alpha**2]),
+            jnp.stack([zero, one, (1 - e) / alpha]),
+            jnp.stack([zero, zero, e]),
+        ]
+    )
 
 
 def _singer_Q(alpha: float, dt: Array) -> Array:
@@ -266,8 +274,14 @@ def singer(ndim: int = 1, q: ArrayLike = 1.0, alpha: float = 0.1) -> MotionModel
         dt = _fdt(dt)
         return _block_diag([float(qa) * _singer_Q(alpha, dt) for qa in qs])
 
-    return MotionModel(lambda x, dt: F(jnp.asarray(dt, x.dtype)) @ x, Q, 3 * ndim,
-                       tuple(range(0, 3 * ndim, 3)), F, f"Singer ({ndim}-D, alpha={alpha})")
+    return MotionModel(
+        lambda x, dt: F(jnp.asarray(dt, x.dtype)) @ x,
+        Q,
+        3 * ndim,
+        tuple(range(0, 3 * ndim, 3)),
+        F,
+        f"Singer ({ndim}-D, alpha={alpha})",
+    )
 
 
 def _turn_F(omega: Array, dt: Array) -> Array:
@@ -275,12 +289,14 @@ def _turn_F(omega: Array, dt: Array) -> Array:
     w = jnp.where(jnp.abs(omega) < 1e-12, 1e-12, omega)
     s, c = jnp.sin(w * dt), jnp.cos(w * dt)
     zero, one = jnp.zeros_like(s), jnp.ones_like(s)
-    return jnp.stack([
-        jnp.stack([one, s / w, zero, (c - 1) / w]),
-        jnp.stack([zero, c, zero, -s]),
-        jnp.stack([zero, (1 - c) / w, one, s / w]),
-        jnp.stack([zero, s, zero, c]),
-    ])
+    return jnp.stack(
+        [
+            jnp.stack([one, s / w, zero, (c - 1) / w]),
+            jnp.stack([zero, c, zero, -s]),
+            jnp.stack([zero, (1 - c) / w, one, s / w]),
+            jnp.stack([zero, s, zero, c]),
+        ]
+    )
 
 
 def coordinated_turn(omega: float, q: ArrayLike = 1.0) -> MotionModel:
@@ -302,8 +318,9 @@ def coordinated_turn(omega: float, q: ArrayLike = 1.0) -> MotionModel:
         dt = _fdt(dt)
         return _block_diag([float(qa) * _nth_Q(1, dt) for qa in qs])
 
-    return MotionModel(lambda x, dt: F(jnp.asarray(dt, x.dtype)) @ x, Q, 4, (0, 2), F,
-                       f"coordinated turn (omega={omega})")
+    return MotionModel(
+        lambda x, dt: F(jnp.asarray(dt, x.dtype)) @ x, Q, 4, (0, 2), F, f"coordinated turn (omega={omega})"
+    )
 
 
 def coordinated_turn_unknown_rate(q: ArrayLike = 1.0, q_turn: float = 1e-4) -> MotionModel:
@@ -323,8 +340,9 @@ def coordinated_turn_unknown_rate(q: ArrayLike = 1.0, q_turn: float = 1e-4) -> M
 
     def Q(dt):
         dt = _fdt(dt)
-        return _block_diag([float(qs[0]) * _nth_Q(1, dt), float(qs[1]) * _nth_Q(1, dt),
-                            (q_turn * jnp.abs(dt)).reshape(1, 1)])
+        return _block_diag(
+            [float(qs[0]) * _nth_Q(1, dt), float(qs[1]) * _nth_Q(1, dt), (q_turn * jnp.abs(dt)).reshape(1, 1)]
+        )
 
     return MotionModel(f, Q, 5, (0, 2), None, "coordinated turn, unknown rate")
 
@@ -339,8 +357,9 @@ def _check_cov(R: ArrayLike, m: int, name: str = "R") -> jnp.ndarray:
         R = R * np.eye(m)
     elif R.ndim == 1:
         if R.shape != (m,):
-            raise ValueError(f"{name}: expected {m} standard deviations or an ({m}, {m}) covariance, "
-                             f"got shape {R.shape}")
+            raise ValueError(
+                f"{name}: expected {m} standard deviations or an ({m}, {m}) covariance, got shape {R.shape}"
+            )
         R = np.diag(R**2)
     if R.shape != (m, m):
         raise ValueError(f"{name}: expected shape ({m}, {m}), got {R.shape}")
@@ -367,12 +386,14 @@ def cartesian_position(position_dims: Sequence[int], state_dim: int, R: ArrayLik
     H = np.zeros((len(dims), state_dim))
     H[np.arange(len(dims)), dims] = 1.0
     Hj = jnp.asarray(H)
-    return MeasurementModel(lambda x: Hj.astype(x.dtype) @ x, _check_cov(R, len(dims)), (), Hj,
-                            "cartesian position")
+    return MeasurementModel(
+        lambda x: Hj.astype(x.dtype) @ x, _check_cov(R, len(dims)), (), Hj, "cartesian position"
+    )
 
 
-def bearing_range(position_dims: Sequence[int] = (0, 2), R: ArrayLike = (0.01, 1.0),
-                  sensor: ArrayLike = (0.0, 0.0)) -> MeasurementModel:
+def bearing_range(
+    position_dims: Sequence[int] = (0, 2), R: ArrayLike = (0.01, 1.0), sensor: ArrayLike = (0.0, 0.0)
+) -> MeasurementModel:
     """``z = [atan2(y - s_y, x - s_x), |p - s|]`` (Stone Soup's ``CartesianToBearingRange``).
 
     ``R`` as in :func:`cartesian_position` (default std 0.01 rad, 1 m); the bearing is an angle.
@@ -387,8 +408,11 @@ def bearing_range(position_dims: Sequence[int] = (0, 2), R: ArrayLike = (0.01, 1
     return MeasurementModel(h, _check_cov(R, 2), (0,), None, "bearing-range")
 
 
-def elevation_bearing_range(position_dims: Sequence[int] = (0, 2, 4), R: ArrayLike = (0.01, 0.01, 1.0),
-                            sensor: ArrayLike = (0.0, 0.0, 0.0)) -> MeasurementModel:
+def elevation_bearing_range(
+    position_dims: Sequence[int] = (0, 2, 4),
+    R: ArrayLike = (0.01, 0.01, 1.0),
+    sensor: ArrayLike = (0.0, 0.0, 0.0),
+) -> MeasurementModel:
     """``z = [elevation, bearing, range]`` (Stone Soup's ``CartesianToElevationBearingRange``);
     elevation and bearing are angles."""
     dims = _check_dims(position_dims, 3, "position_dims")
@@ -402,8 +426,9 @@ def elevation_bearing_range(position_dims: Sequence[int] = (0, 2, 4), R: ArrayLi
     return MeasurementModel(h, _check_cov(R, 3), (0, 1), None, "elevation-bearing-range")
 
 
-def bearings_only(position_dims: Sequence[int] = (0, 2), R: ArrayLike = 0.01**2,
-                  sensor: ArrayLike = (0.0, 0.0)) -> MeasurementModel:
+def bearings_only(
+    position_dims: Sequence[int] = (0, 2), R: ArrayLike = 0.01**2, sensor: ArrayLike = (0.0, 0.0)
+) -> MeasurementModel:
     """``z = atan2(y - s_y, x - s_x)`` (Stone Soup's ``Cartesian2DToBearing``); an angle."""
     dims = _check_dims(position_dims, 2, "position_dims")
     s = jnp.asarray(sensor, float)
@@ -414,8 +439,12 @@ def bearings_only(position_dims: Sequence[int] = (0, 2), R: ArrayLike = 0.01**2,
     return MeasurementModel(h, _check_cov(R, 1), (0,), None, "bearings only")
 
 
-def bearing_range_rate(position_dims: Sequence[int] = (0, 2), velocity_dims: Sequence[int] = (1, 3),
-                       R: ArrayLike = (0.01, 1.0, 0.1), sensor: ArrayLike = (0.0, 0.0)) -> MeasurementModel:
+def bearing_range_rate(
+    position_dims: Sequence[int] = (0, 2),
+    velocity_dims: Sequence[int] = (1, 3),
+    R: ArrayLike = (0.01, 1.0, 0.1),
+    sensor: ArrayLike = (0.0, 0.0),
+) -> MeasurementModel:
     """``z = [bearing, range, range rate]`` of a 2-D target from a static sensor (Stone Soup's
     ``CartesianToBearingRangeRate2D`` for a static sensor): ``range rate = (p - s) . v / |p - s|``."""
     pd = _check_dims(position_dims, 2, "position_dims")
@@ -430,8 +459,9 @@ def bearing_range_rate(position_dims: Sequence[int] = (0, 2), velocity_dims: Seq
     return MeasurementModel(h, _check_cov(R, 3), (0,), None, "bearing-range-rate")
 
 
-def glint_mixture(R: ArrayLike, frequency: float = 0.1, tail_scale: float = 10.0,
-                  dtype: Any = None) -> GaussianMixture:
+def glint_mixture(
+    R: ArrayLike, frequency: float = 0.1, tail_scale: float = 10.0, dtype: Any = None
+) -> GaussianMixture:
     """Two-component Gaussian mixture for glint noise: ``(1 - eps) N(0, R) + eps N(0, s^2 R)``.
 
     The wide component models the heavy glint tail (seed 000 §IV-D uses a Gaussian-Laplace glint
@@ -450,8 +480,9 @@ def glint_mixture(R: ArrayLike, frequency: float = 0.1, tail_scale: float = 10.0
     if not tail_scale > 0:
         raise ValueError(f"tail_scale: must be > 0, got {tail_scale!r}")
     m = R.shape[0]
-    return GaussianMixture.create([1 - frequency, frequency], np.zeros((2, m)),
-                                  np.stack([R, tail_scale**2 * R]), dtype=dtype)
+    return GaussianMixture.create(
+        [1 - frequency, frequency], np.zeros((2, m)), np.stack([R, tail_scale**2 * R]), dtype=dtype
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -466,6 +497,7 @@ def noise_scaler(Q: Callable[[Array], Array], dt_ref: float) -> Callable[[Gaussi
     ``N(0, Q(dt))``, a mixture keeps its shape, and the map is linear in the noise parameters (they
     stay differentiable leaves of ``params``).
     """
+
     def scale(noise, dt: Array):
         if not isinstance(noise, GaussianMixture):  # a (mean, cov) pair of a single-Gaussian filter
             mean, cov = noise
@@ -520,17 +552,19 @@ def state_space_model(
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt: must be finite and > 0, got {dt!r}")
     if process_noise is None:
-        process_noise = GaussianMixture.create([1.0], np.zeros((1, d)),
-                                               np.asarray(motion.Q(jnp.asarray(dt, dtype)))[None],
-                                               dtype=dtype)
+        process_noise = GaussianMixture.create(
+            [1.0], np.zeros((1, d)), np.asarray(motion.Q(jnp.asarray(dt, dtype)))[None], dtype=dtype
+        )
     if measurement_noise is None:
-        measurement_noise = GaussianMixture.create([1.0], np.zeros((1, m)),
-                                                   np.asarray(measurement.R)[None], dtype=dtype)
+        measurement_noise = GaussianMixture.create(
+            [1.0], np.zeros((1, m)), np.asarray(measurement.R)[None], dtype=dtype
+        )
     if process_noise.dim != d:
         raise ValueError(f"process_noise: dimension {process_noise.dim} does not match the state's {d}")
     if measurement_noise.dim != m:
-        raise ValueError(f"measurement_noise: dimension {measurement_noise.dim} does not match the "
-                         f"measurement's {m}")
+        raise ValueError(
+            f"measurement_noise: dimension {measurement_noise.dim} does not match the measurement's {m}"
+        )
     default_dt = float(dt)
     scale = noise_scaler(motion.Q, default_dt)
 
@@ -552,7 +586,14 @@ def state_space_model(
     f_jac = None if F_of_dt is None else (lambda x, inputs: F_of_dt(step_dt(inputs, x.dtype)))
     h_jac = None if measurement.H is None else (lambda x, inputs: jnp.asarray(measurement.H, x.dtype))
     return StateSpaceModel(
-        f=f, h=h, process_noise=process_noise, measurement_noise=measurement_noise, prior=prior,
-        f_jacobian=f_jac, h_jacobian=h_jac, angle_dims=measurement.angle_dims,
-        process_noise_at=noise_at, call="inputs",
+        f=f,
+        h=h,
+        process_noise=process_noise,
+        measurement_noise=measurement_noise,
+        prior=prior,
+        f_jacobian=f_jac,
+        h_jacobian=h_jac,
+        angle_dims=measurement.angle_dims,
+        process_noise_at=noise_at,
+        call="inputs",
     )

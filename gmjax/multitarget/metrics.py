@@ -173,8 +173,13 @@ def _dtype(x, y):
 
 
 def ospa(
-    x: ArrayLike, y: ArrayLike, x_mask: ArrayLike | None = None, y_mask: ArrayLike | None = None, *,
-    c: Any = 100.0, p: Any = 1.0,
+    x: ArrayLike,
+    y: ArrayLike,
+    x_mask: ArrayLike | None = None,
+    y_mask: ArrayLike | None = None,
+    *,
+    c: Any = 100.0,
+    p: Any = 1.0,
 ) -> Array:
     """OSPA distance of order ``p`` with cut-off ``c`` between two padded sets.
 
@@ -225,8 +230,13 @@ class GOSPA(NamedTuple):
 
 
 def gospa(
-    x: ArrayLike, y: ArrayLike, x_mask: ArrayLike | None = None, y_mask: ArrayLike | None = None, *,
-    c: Any = 100.0, p: Any = 1.0,
+    x: ArrayLike,
+    y: ArrayLike,
+    x_mask: ArrayLike | None = None,
+    y_mask: ArrayLike | None = None,
+    *,
+    c: Any = 100.0,
+    p: Any = 1.0,
 ) -> GOSPA:
     """GOSPA with ``alpha = 2`` between estimates ``x`` and the truth ``y`` (padded sets).
 
@@ -247,8 +257,13 @@ def gospa(
 
 
 def soft_gospa(
-    x: ArrayLike, y: ArrayLike, existence: ArrayLike, y_mask: ArrayLike | None = None, *,
-    c: Any = 100.0, p: Any = 1.0,
+    x: ArrayLike,
+    y: ArrayLike,
+    existence: ArrayLike,
+    y_mask: ArrayLike | None = None,
+    *,
+    c: Any = 100.0,
+    p: Any = 1.0,
 ) -> GOSPA:
     """GOSPA (``alpha = 2``) of estimates with existence weights ``e_i`` in ``[0, 1]``: differentiable.
 

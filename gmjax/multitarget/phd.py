@@ -178,8 +178,10 @@ def predict_intensity(
     means, covs = jax.vmap(local.moments)(pred)
     p_s = jnp.asarray(params.survival_prob, intensity.weights.dtype)
     survivors = gmm.sanitize(GaussianMixture(intensity.weights * p_s, means, covs, intensity.mask))
-    birth = jax.tree_util.tree_map(lambda a: a.astype(intensity.means.dtype)
-                                   if jnp.issubdtype(a.dtype, jnp.floating) else a, params.birth)
+    birth = jax.tree_util.tree_map(
+        lambda a: a.astype(intensity.means.dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a,
+        params.birth,
+    )
     return gmm.concat(survivors, birth)
 
 
@@ -348,8 +350,10 @@ def _as_noise(noise, dim: int, name: str, dtype):
         cov = np.asarray(noise, float)
         mean = np.zeros(cov.shape[:1])
     if mean.shape != (dim,) or cov.shape != (dim, dim):
-        raise ValueError(f"{name}: expected a ({dim},) mean and a ({dim}, {dim}) covariance, got "
-                         f"{mean.shape} and {cov.shape}")
+        raise ValueError(
+            f"{name}: expected a ({dim},) mean and a ({dim}, {dim}) covariance, got "
+            f"{mean.shape} and {cov.shape}"
+        )
     if not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T):
         raise ValueError(f"{name}: covariance must be finite and symmetric")
     eig = np.linalg.eigvalsh(cov)
@@ -493,8 +497,9 @@ def gm_phd(
         del key
         return PHDState(predict_intensity(lf, params, state.intensity, inputs.t))
 
-    def update(params: PHDParams, state: PHDState, z: Array, inputs: StepInputs, *,
-               key: PRNGKey | None = None):
+    def update(
+        params: PHDParams, state: PHDState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
+    ):
         zs = jnp.asarray(z)
         if zs.ndim != 2 or zs.shape[-1] != m:
             raise ValueError(f"z: expected a padded measurement set of shape (M, {m}), got {zs.shape}")
@@ -502,8 +507,9 @@ def gm_phd(
         upd = update_intensity(lf, params, predicted, zs.astype(predicted.means.dtype), inputs.t)
         cardinality = gmm.total_weight(upd.intensity)
         work, truncated, heaviest_dropped = _truncate(upd.intensity, merge_capacity)
-        reduced, rinfo = _reduce(params.reducer, work, normalized=normalized,
-                                 keep_pruned_mass=keep_pruned_mass, key=key)
+        reduced, rinfo = _reduce(
+            params.reducer, work, normalized=normalized, keep_pruned_mass=keep_pruned_mass, key=key
+        )
         post, cap_overflow = _fit(reduced, capacity)
         est = extract(post, params.extract_threshold, max_estimates=max_estimates)
         mean, cov = gmm.moments(post)

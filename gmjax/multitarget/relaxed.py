@@ -78,8 +78,12 @@ def relaxed_vo_ma(
     a = g * w
     # a relaxed gate keeps every component live; one whose kept weight is below rounding (eps^2 of the
     # total) would only square its weight in the merge's derivative and underflow to a NaN gradient
-    floor = jnp.maximum(negligible_floor(prune_temperature, mode, dtype),
-                        negligible_floor(merge_temperature, mode, dtype)) * total
+    floor = (
+        jnp.maximum(
+            negligible_floor(prune_temperature, mode, dtype), negligible_floor(merge_temperature, mode, dtype)
+        )
+        * total
+    )
     alive = gm.mask & (g > 0) & ~(a < floor)
     heaviest = jnp.argmax(jnp.where(gm.mask, w, -jnp.inf))
     rescue = ~jnp.any(alive) & jnp.any(gm.mask)  # as VoMa: a mixture is never emptied
@@ -126,8 +130,7 @@ def relaxed_vo_ma(
     labels = jnp.where(alive, jnp.argmax(member, axis=0), -1)  # cluster of the largest share
     pos = jnp.full(K, -1, jnp.int32).at[keep].set(jnp.where(live[keep], jnp.arange(J, dtype=jnp.int32), -1))
     labels = jnp.where(labels >= 0, pos[jnp.maximum(labels, 0)], -1)
-    info = make_info(gm, out, labels, pruned_mass=pruned, overflow=n_live > J,
-                     aux={"n_clusters": n_live})
+    info = make_info(gm, out, labels, pruned_mass=pruned, overflow=n_live > J, aux={"n_clusters": n_live})
     return out, info
 
 
@@ -162,6 +165,11 @@ class RelaxedVoMa:
     ) -> tuple[GaussianMixture, ReductionInfo]:
         del key
         return relaxed_vo_ma(
-            gm, self.prune_threshold, self.merge_threshold, self.prune_temperature,
-            self.merge_temperature, max_components=self.max_components, mode=self.mode,
+            gm,
+            self.prune_threshold,
+            self.merge_threshold,
+            self.prune_temperature,
+            self.merge_temperature,
+            max_components=self.max_components,
+            mode=self.mode,
         )

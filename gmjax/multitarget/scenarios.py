@@ -205,7 +205,9 @@ def _birth(means, cov, weight, dtype) -> GaussianMixture:
     means = jnp.asarray(means, dtype)
     J = means.shape[0]
     return GaussianMixture(
-        jnp.full(J, weight, dtype), means, jnp.broadcast_to(jnp.asarray(cov, dtype), (J, 4, 4)),
+        jnp.full(J, weight, dtype),
+        means,
+        jnp.broadcast_to(jnp.asarray(cov, dtype), (J, 4, 4)),
         jnp.ones(J, bool),
     )
 
@@ -231,14 +233,20 @@ def vo_ma_linear(
     """
     dtype = jnp.result_type(float) if dtype is None else dtype
     model = cv_model(5.0, "position", 100.0 * np.eye(2), dtype=dtype)
-    birth = _birth([[250.0, 250.0, 0.0, 0.0], [-250.0, -250.0, 0.0, 0.0]],
-                   np.diag([100.0, 100.0, 25.0, 25.0]), 0.1, dtype)
-    x0 = np.array([
-        [250.0, 250.0, 2.5, -11.5],
-        [-250.0, -250.0, 11.5, -2.5],
-        [250.0, 250.0, -10.0, 2.0],
-        [-250.0, -250.0, -5.0, 8.0],
-    ])
+    birth = _birth(
+        [[250.0, 250.0, 0.0, 0.0], [-250.0, -250.0, 0.0, 0.0]],
+        np.diag([100.0, 100.0, 25.0, 25.0]),
+        0.1,
+        dtype,
+    )
+    x0 = np.array(
+        [
+            [250.0, 250.0, 2.5, -11.5],
+            [-250.0, -250.0, 11.5, -2.5],
+            [250.0, 250.0, -10.0, 2.0],
+            [-250.0, -250.0, -5.0, 8.0],
+        ]
+    )
     return MultiTargetScenario(
         name="vo_ma_linear",
         model=model,
@@ -283,8 +291,9 @@ def range_bearing(
     """
     dtype = jnp.result_type(float) if dtype is None else dtype
     model = cv_model(5.0, _range_bearing, np.diag([sigma_range**2, sigma_bearing**2]), dtype=dtype)
-    birth = _birth([[500.0, 500.0, 0.0, 0.0], [800.0, -300.0, 0.0, 0.0]],
-                   np.diag([100.0, 100.0, 25.0, 25.0]), 0.1, dtype)
+    birth = _birth(
+        [[500.0, 500.0, 0.0, 0.0], [800.0, -300.0, 0.0, 0.0]], np.diag([100.0, 100.0, 25.0, 25.0]), 0.1, dtype
+    )
     x0 = np.array([[500.0, 500.0, 5.0, -8.0], [800.0, -300.0, -6.0, 6.0], [500.0, 500.0, 8.0, 3.0]])
     return MultiTargetScenario(
         name="range_bearing",

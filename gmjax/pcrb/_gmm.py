@@ -141,9 +141,7 @@ def _quad_points(rule: SigmaPoints, means: Array, covs: Array) -> Array:
     return means[:, None, :] + jnp.einsum("nj,kij->kni", z, L)
 
 
-def gmm_expectation(
-    fn: Callable[[Array], Array], gm: GaussianMixture, rule: SigmaPoints
-) -> Array:
+def gmm_expectation(fn: Callable[[Array], Array], gm: GaussianMixture, rule: SigmaPoints) -> Array:
     """``E[fn(x)]`` for ``x ~ gm`` by per-component quadrature (seed 002 eq 34 with eq 38).
 
     Args:
@@ -166,9 +164,7 @@ def _spectral_norm(A: Array) -> Array:
     return jnp.linalg.norm(A, ord=2)
 
 
-def nonlinearity_metric(
-    jac: Callable[[Array], Array], gm: GaussianMixture
-) -> tuple[Array, Array]:
+def nonlinearity_metric(jac: Callable[[Array], Array], gm: GaussianMixture) -> tuple[Array, Array]:
     """The GMM nonlinearity metric of eqs 49-50.
 
     For every component the Jacobian is evaluated at the mean and at the ``2d`` points
@@ -280,9 +276,7 @@ def _validate_config(config: GMMPCRBConfig, model: PCRBModel) -> None:
     if config.mode not in _MODES:
         raise ValueError(f"config.mode: expected one of {_MODES}, got {config.mode!r}")
     if config.propagator not in _PROPAGATORS:
-        raise ValueError(
-            f"config.propagator: expected one of {_PROPAGATORS}, got {config.propagator!r}"
-        )
+        raise ValueError(f"config.propagator: expected one of {_PROPAGATORS}, got {config.propagator!r}")
     if int(config.num_components) < 1:
         raise ValueError(f"config.num_components: must be >= 1, got {config.num_components}")
     if int(config.kmeans_max_iter) < 1:
@@ -323,7 +317,8 @@ def build_pcrb_gmm(
     if isinstance(model.Q, GaussianMixture) or isinstance(model.R, GaussianMixture):
         raise ValueError(
             "model: pcrb_gmm propagates Gaussian noise only (eqs 51-68); for Gaussian-mixture noise "
-            "use pcrb_mc or pcrb_linear")
+            "use pcrb_mc or pcrb_linear"
+        )
     config = GMMPCRBConfig() if config is None else config
     _validate_config(config, model)
     d = model.state_dim
@@ -387,9 +382,7 @@ def build_pcrb_gmm(
         _, outs = jax.lax.scan(step, (gm0, J0.astype(dtype)), ns)
         Js, metric, m_ref, is_large, its, conv, gms, D11, D12, D22 = outs
         Js = jnp.concatenate([J0.astype(dtype)[None], Js])
-        mixtures = jax.tree_util.tree_map(
-            lambda a, b: jnp.concatenate([a[None], b]), gm0, gms
-        )
+        mixtures = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), gm0, gms)
         info = GMMPCRBInfo(metric, m_ref, is_large, its, conv, mixtures, D11, D12, D22)
         return PCRBResult(Js, bounds_from_information(Js), info)
 
@@ -440,4 +433,3 @@ def pcrb_gmm(
         ValueError: for a bad model, rule, config or prior.
     """
     return build_pcrb_gmm(model, rule, n_steps, config)(prior_gm, J0)
-

@@ -71,8 +71,9 @@ def _chunk_sums(model: PCRBModel, key: PRNGKey, n_valid: Array, *, n_steps: int,
     return sums
 
 
-def pcrb_from_expectations(J0: ArrayLike, D11: ArrayLike, EF: ArrayLike, EHRH: ArrayLike,
-                           Q: ArrayLike | GaussianMixture) -> Array:
+def pcrb_from_expectations(
+    J0: ArrayLike, D11: ArrayLike, EF: ArrayLike, EHRH: ArrayLike, Q: ArrayLike | GaussianMixture
+) -> Array:
     """Run eq 4 from ``J_0`` given ``E[F^T I_Q F]``, ``E[F]`` and ``E[H^T I_R H]`` per step.
 
     ``Q`` is the process-noise covariance or a :class:`~gmjax.mixture.GaussianMixture`; ``I_Q`` is

@@ -117,9 +117,7 @@ def check_model(model: PCRBModel) -> PCRBModel:
         if np.linalg.eigvalsh(0.5 * (M + M.T))[0] <= 0:
             raise ValueError(f"{name}: not positive definite (the PCRB needs non-singular noise)")
     if model.prior.dim != Q.shape[0]:
-        raise ValueError(
-            f"prior: dimension {model.prior.dim} does not match Q of shape {Q.shape}"
-        )
+        raise ValueError(f"prior: dimension {model.prior.dim} does not match Q of shape {Q.shape}")
     return model
 
 

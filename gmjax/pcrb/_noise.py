@@ -68,8 +68,9 @@ def _inv_pd(M: Array) -> Array:
     return gaussian.symmetrize(jax.scipy.linalg.cho_solve((L, True), jnp.eye(M.shape[-1], dtype=M.dtype)))
 
 
-def noise_information(noise: ArrayLike | GaussianMixture, n_points: int | None = None,
-                      dtype: Any = None) -> Array:
+def noise_information(
+    noise: ArrayLike | GaussianMixture, n_points: int | None = None, dtype: Any = None
+) -> Array:
     """``I = E[grad log p(w) grad log p(w)^T]`` ``(d, d)`` of a noise density.
 
     Args:

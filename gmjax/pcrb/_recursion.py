@@ -70,8 +70,14 @@ def _stack(M: Array, n_steps: int, name: str, shape: tuple[int, int]) -> Array:
     return M
 
 
-def pcrb_linear(F: ArrayLike, H: ArrayLike, Q: ArrayLike | GaussianMixture, R: ArrayLike | GaussianMixture,
-                P0: ArrayLike, n_steps: int) -> PCRBResult:
+def pcrb_linear(
+    F: ArrayLike,
+    H: ArrayLike,
+    Q: ArrayLike | GaussianMixture,
+    R: ArrayLike | GaussianMixture,
+    P0: ArrayLike,
+    n_steps: int,
+) -> PCRBResult:
     """PCRB of the linear Gaussian model ``x_{n+1} = F_n x_n + w_n``, ``z_{n+1} = H_{n+1} x_{n+1} + v``.
 
     With ``D11 = F^T Q^{-1} F``, ``D12 = -F^T Q^{-1}``, ``D22 = Q^{-1} + H^T R^{-1} H`` (seed 002
@@ -132,5 +138,3 @@ def _pcrb_linear(F, H, Qi, Ri, P0, n_steps: int) -> PCRBResult:
     _, Js = jax.lax.scan(step, J0, (F, H, Qi, Ri))
     Js = jnp.concatenate([J0[None], Js])
     return PCRBResult(Js, bounds_from_information(Js), None)
-
-

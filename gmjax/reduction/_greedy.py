@@ -90,8 +90,16 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
             lb = jnp.where(at_i, jnp.min(row_up), jnp.where(at_j, jnp.inf, lb))
         merges = s.merges.at[step].set(jnp.where(do, jnp.stack([i, j]), -1).astype(jnp.int32))
         return GreedyState(
-            w, m, P, mask, labels, C, lb, merges,
-            s.total + jnp.where(do, c, 0.0), s.n_live - do.astype(jnp.int32),
+            w,
+            m,
+            P,
+            mask,
+            labels,
+            C,
+            lb,
+            merges,
+            s.total + jnp.where(do, c, 0.0),
+            s.n_live - do.astype(jnp.int32),
         )
 
     return body, n_steps
@@ -131,7 +139,8 @@ def upper_argmin(s: GreedyState):
     C = jax.lax.stop_gradient(s.C)
     s = s._replace(C=C)
     lb, i, _, _ = jax.lax.while_loop(
-        cond, body,
+        cond,
+        body,
         (jax.lax.stop_gradient(s.lb), jnp.zeros((), jnp.int32), jnp.asarray(False), jnp.zeros((), jnp.int32)),
     )
     j = jnp.argmin(C[i, :]).astype(jnp.int32)
@@ -143,8 +152,15 @@ def init_state(gm, C):
     n_steps = K
     w = jnp.where(gm.mask, gm.weights, 0.0)
     return GreedyState(
-        w, gm.means, gm.covs, gm.mask, _util.identity_labels(gm), C, jnp.min(C, axis=1),
-        jnp.full((max(n_steps, 1), 2), -1, jnp.int32), jnp.zeros((), w.dtype),
+        w,
+        gm.means,
+        gm.covs,
+        gm.mask,
+        _util.identity_labels(gm),
+        C,
+        jnp.min(C, axis=1),
+        jnp.full((max(n_steps, 1), 2), -1, jnp.int32),
+        jnp.zeros((), w.dtype),
         jnp.sum(gm.mask.astype(jnp.int32)),
     )
 
@@ -171,4 +187,3 @@ def sequential(core):
     fn = jax.custom_jvp(lambda *args: seq(*args))
     fn.defjvp(lambda primals, tangents: jax.jvp(core, primals, tangents))
     return fn
-

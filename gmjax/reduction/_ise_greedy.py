@@ -42,8 +42,13 @@ class ISEGreedyState(NamedTuple):
 def initial_state(gm: GaussianMixture, w0: jax.Array, n_steps: int) -> ISEGreedyState:
     """The greedy loop's state before any action (shared by Williams and COWA)."""
     return ISEGreedyState(
-        w0, gm.means, gm.covs, gm.mask, _util.identity_labels(gm),
-        jnp.sum(gm.mask.astype(jnp.int32)), jnp.zeros((), w0.dtype),
+        w0,
+        gm.means,
+        gm.covs,
+        gm.mask,
+        _util.identity_labels(gm),
+        jnp.sum(gm.mask.astype(jnp.int32)),
+        jnp.zeros((), w0.dtype),
         jnp.full((max(n_steps, 1), 2), -2, jnp.int32),
     )
 
@@ -55,4 +60,3 @@ def ise_terms(s, gm0, w0):
     A = overlap(s.m[:, None], s.P[:, None], gm0.means[None], gm0.covs[None])
     a = jnp.where(s.mask, A @ w0, 0.0)
     return S, a
-

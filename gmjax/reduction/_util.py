@@ -55,9 +55,7 @@ def finalize(
     out = jax.tree_util.tree_map(lambda a: a[idx], work)
     valid = work.mask[idx]
     out = mixture.sanitize(out._replace(mask=valid))
-    pos = jnp.full(Kw, -1, jnp.int32).at[idx].max(
-        jnp.where(valid, jnp.arange(capacity, dtype=jnp.int32), -1)
-    )
+    pos = jnp.full(Kw, -1, jnp.int32).at[idx].max(jnp.where(valid, jnp.arange(capacity, dtype=jnp.int32), -1))
     labels_out = jnp.where(labels >= 0, pos[jnp.maximum(labels, 0)], -1)
     kept = jnp.zeros(Kw, bool).at[idx].set(valid)
     dropped = jnp.sum(jnp.where(work.mask & ~kept, work.weights, 0.0))

@@ -125,5 +125,7 @@ class BruteForce(Stateless):
     num_out: int = static_field(3)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return brute_force(gm, self.num_out, capacity=self.capacity, key=key)

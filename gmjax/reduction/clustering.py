@@ -146,9 +146,7 @@ def centre_distances(gm: GaussianMixture, dims: Sequence[int] | None = None) -> 
     return _safe_sqrt(jnp.sum(diff * diff, axis=-1))
 
 
-def judgment_matrix(
-    delta: Array, radius: ArrayLike, mask: Mask, *, triangular: bool = False
-) -> Array:
+def judgment_matrix(delta: Array, radius: ArrayLike, mask: Mask, *, triangular: bool = False) -> Array:
     """Boolean judgment matrix ``r_ij = [δ_ij <= radius]`` (seed 000 eq 24; seed 003 eqs 4–5).
 
     Args:

@@ -68,11 +68,15 @@ def _cowa(gm, num_out, threshold, capacity):
     eye = jnp.eye(d, dtype=gm.covs.dtype)
     w0 = jnp.where(gm.mask, gm.weights, 0.0)
     total0 = jnp.sum(w0)
-    Jhh = w0 @ jnp.where(
-        gm.mask[:, None] & gm.mask[None, :],
-        overlap(gm.means[:, None], gm.covs[:, None], gm.means[None], gm.covs[None]),
-        0.0,
-    ) @ w0
+    Jhh = (
+        w0
+        @ jnp.where(
+            gm.mask[:, None] & gm.mask[None, :],
+            overlap(gm.means[:, None], gm.covs[:, None], gm.means[None], gm.covs[None]),
+            0.0,
+        )
+        @ w0
+    )
 
     def body(step, s):
         # enhanced-West selection: smallest w / det P, merged with its ISE-nearest neighbour
@@ -99,7 +103,13 @@ def _cowa(gm, num_out, threshold, capacity):
         P = jnp.where(act[:, None, None], P, eye)
         m = jnp.where(act[:, None], m, 0.0)
         new = ISEGreedyState(
-            w_opt, m, P, act, labels, jnp.sum(act.astype(jnp.int32)), cost,
+            w_opt,
+            m,
+            P,
+            act,
+            labels,
+            jnp.sum(act.astype(jnp.int32)),
+            cost,
             s.actions.at[step].set(jnp.stack([i, j]).astype(jnp.int32)),
         )
         return jax.tree_util.tree_map(lambda a_, b_: jnp.where(do, a_, b_), new, s)
@@ -110,7 +120,12 @@ def _cowa(gm, num_out, threshold, capacity):
     work = GaussianMixture(s.w, s.m, s.P, s.mask)
     out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
     return out, make_info(
-        gm, out, labels, overflow=overflow, pruned_mass=dropped, cost=ise(gm, out),
+        gm,
+        out,
+        labels,
+        overflow=overflow,
+        pruned_mass=dropped,
+        cost=ise(gm, out),
         aux={"actions": s.actions[:n_steps]},
     )
 
@@ -148,5 +163,7 @@ class COWA(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return cowa(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)

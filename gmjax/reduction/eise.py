@@ -138,13 +138,20 @@ def cluster_ise(gm: GaussianMixture, membership: Array, merged: GaussianMixture)
     dtype = gm.means.dtype
     w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
     Aw = jnp.where(gm.mask[:, None], membership.astype(dtype), 0.0) * w[:, None]  # (K, C)
+
     def pair(ma, Pa, mb, Pb):  # log ∫ N(ma, Pa) N(mb, Pb) = log N(ma; mb, Pa + Pb), (A, B)
         return gaussian.spd_logpdf(ma[:, None, :], mb[None, :, :], Pa[:, None] + Pb[None, :])
 
-    S = jnp.exp(jnp.where(gm.mask[:, None] & gm.mask[None, :],
-                          pair(gm.means, gm.covs, gm.means, gm.covs), -jnp.inf))
-    S_cross = jnp.exp(jnp.where(gm.mask[:, None] & merged.mask[None, :],
-                                pair(gm.means, gm.covs, merged.means, merged.covs), -jnp.inf))
+    S = jnp.exp(
+        jnp.where(gm.mask[:, None] & gm.mask[None, :], pair(gm.means, gm.covs, gm.means, gm.covs), -jnp.inf)
+    )
+    S_cross = jnp.exp(
+        jnp.where(
+            gm.mask[:, None] & merged.mask[None, :],
+            pair(gm.means, gm.covs, merged.means, merged.covs),
+            -jnp.inf,
+        )
+    )
     self_norm = jnp.exp(gaussian.spd_logpdf(merged.means, merged.means, 2.0 * merged.covs))
     Wc = jnp.where(merged.mask, merged.weights, 0.0)
     j_hh = jnp.einsum("mc,mn,nc->c", Aw, S, Aw)
@@ -216,8 +223,16 @@ def hard_eise(
     merged = merge_membership(gm, A, method)
     n_clusters = jnp.sum(merged.mask.astype(jnp.int32))
     n_ref = jnp.sum(gm.mask.astype(jnp.int32))
-    value = eise(gm, A, merged, n_clusters.astype(gm.means.dtype), n_ref, alpha=alpha,
-                 regularizer=regularizer, ise_scale=ise_scale)
+    value = eise(
+        gm,
+        A,
+        merged,
+        n_clusters.astype(gm.means.dtype),
+        n_ref,
+        alpha=alpha,
+        regularizer=regularizer,
+        ise_scale=ise_scale,
+    )
     return value, merged, n_clusters
 
 
@@ -258,8 +273,9 @@ def relaxed_eise(
     merged = merge_membership(gm, A, method)
     n_soft = jnp.sum(pi * grid_counts.astype(pi.dtype))
     n_ref = jnp.sum(gm.mask.astype(jnp.int32))
-    return eise(gm, A, merged, n_soft, n_ref, alpha=alpha, regularizer=regularizer,
-                ise_scale=ise_scale, clip=False)
+    return eise(
+        gm, A, merged, n_soft, n_ref, alpha=alpha, regularizer=regularizer, ise_scale=ise_scale, clip=False
+    )
 
 
 class SearchResult(NamedTuple):
@@ -348,8 +364,19 @@ def _newton(fun, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
     return lam, ok, it
 
 
-@partial(jax.jit, static_argnames=("grid_size", "newton_steps", "method", "regularizer",
-                                   "ise_scale", "dims", "triangular", "subset_rule"))
+@partial(
+    jax.jit,
+    static_argnames=(
+        "grid_size",
+        "newton_steps",
+        "method",
+        "regularizer",
+        "ise_scale",
+        "dims",
+        "triangular",
+        "subset_rule",
+    ),
+)
 def search_confidence(
     gm: GaussianMixture,
     *,
@@ -397,10 +424,18 @@ def search_confidence(
     grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, grid_size, dtype=dtype)
 
     def evaluate(lam):
-        res: ClusterResult = gauss_cluster(gm, lam, triangular=triangular, subset_rule=subset_rule,
-                                           range_scale=range_scale, delta=delta, dist=dist)
-        value, merged, n = hard_eise(gm, res.labels, alpha=alpha, method=method,
-                                     regularizer=regularizer, ise_scale=ise_scale)
+        res: ClusterResult = gauss_cluster(
+            gm,
+            lam,
+            triangular=triangular,
+            subset_rule=subset_rule,
+            range_scale=range_scale,
+            delta=delta,
+            dist=dist,
+        )
+        value, merged, n = hard_eise(
+            gm, res.labels, alpha=alpha, method=method, regularizer=regularizer, ise_scale=ise_scale
+        )
         return value, res.labels, merged, n
 
     grid_eise, grid_labels, grid_merged, grid_counts = jax.lax.map(evaluate, grid)
@@ -413,19 +448,43 @@ def search_confidence(
 
     if newton_steps == 0:
         zero_i = jnp.zeros((), jnp.int32)
-        return SearchResult(lam_grid, eise_grid, labels_grid, merged_grid, n_grid, grid, grid_eise,
-                            grid_counts, lam_grid, eise_grid, lam_grid, eise_grid,
-                            jnp.asarray(jnp.nan, dtype), zero_i, jnp.zeros((), bool),
-                            jnp.ones((), bool))
+        return SearchResult(
+            lam_grid,
+            eise_grid,
+            labels_grid,
+            merged_grid,
+            n_grid,
+            grid,
+            grid_eise,
+            grid_counts,
+            lam_grid,
+            eise_grid,
+            lam_grid,
+            eise_grid,
+            jnp.asarray(jnp.nan, dtype),
+            zero_i,
+            jnp.zeros((), bool),
+            jnp.ones((), bool),
+        )
 
     def relaxed(lam):
-        return relaxed_eise(lam, gm, grid, grid_labels, grid_counts, temperature=temperature,
-                            alpha=alpha, method=method, regularizer=regularizer,
-                            ise_scale=ise_scale)
+        return relaxed_eise(
+            lam,
+            gm,
+            grid,
+            grid_labels,
+            grid_counts,
+            temperature=temperature,
+            alpha=alpha,
+            method=method,
+            regularizer=regularizer,
+            ise_scale=ise_scale,
+        )
 
     tau = jnp.asarray(temperature, dtype)
-    lam_newton, newton_ok, iterations = _newton(relaxed, lam_grid, lo, hi, newton_steps,
-                                                jnp.asarray(tol, dtype), tau)
+    lam_newton, newton_ok, iterations = _newton(
+        relaxed, lam_grid, lo, hi, newton_steps, jnp.asarray(tol, dtype), tau
+    )
     eise_newton, labels_newton, merged_newton, n_newton = evaluate(lam_newton)
     slack = 8 * jnp.finfo(dtype).eps * jnp.abs(eise_grid)  # rounding of an identical clustering
     use_newton = newton_ok & (eise_newton <= eise_grid + slack)

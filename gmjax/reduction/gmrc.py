@@ -40,9 +40,7 @@ def _gmrc(gm, num_out, max_iter, capacity):
     init, info0 = _runnalls(gm, num_out, jnp.asarray(jnp.inf, gm.weights.dtype), num_out)
 
     def assign(c):
-        kl = gaussian.spd_kl(
-            gm.means[:, None], gm.covs[:, None], c.means[None], c.covs[None]
-        )  # (K, num_out)
+        kl = gaussian.spd_kl(gm.means[:, None], gm.covs[:, None], c.means[None], c.covs[None])  # (K, num_out)
         kl = jnp.where(c.mask[None, :], kl, jnp.inf)
         return jnp.where(gm.mask, jnp.argmin(kl, axis=1).astype(jnp.int32), -1)
 
@@ -62,14 +60,20 @@ def _gmrc(gm, num_out, max_iter, capacity):
         )
         return _S(centers, labels, s.it + 1, jnp.all(labels == s.labels))
 
-    s0 = _S(init, jnp.where(info0.labels >= 0, info0.labels, -1), jnp.zeros((), jnp.int32),
-            jnp.asarray(False))
+    s0 = _S(
+        init, jnp.where(info0.labels >= 0, info0.labels, -1), jnp.zeros((), jnp.int32), jnp.asarray(False)
+    )
     s = jax.lax.while_loop(cond, body, s0)
     merged = merge_labels(gm, s.labels, num_out, "moment")
     out, labels, overflow, dropped = _util.finalize(gm, merged, s.labels, capacity)
     cost = kl_upper_bound(gm, merged, s.labels)
     return out, make_info(
-        gm, out, labels, overflow=overflow, pruned_mass=dropped, cost=cost,
+        gm,
+        out,
+        labels,
+        overflow=overflow,
+        pruned_mass=dropped,
+        cost=cost,
         aux={"iterations": s.it, "converged": s.done},
     )
 
@@ -113,5 +117,7 @@ class GMRC(Stateless):
     max_iter: int = static_field(50)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return gmrc(gm, self.num_out, max_iter=self.max_iter, capacity=self.capacity, key=key)

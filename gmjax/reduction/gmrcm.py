@@ -64,8 +64,17 @@ def init_state(capacity: int) -> GMRCMState:
     return GMRCMState(jnp.zeros((capacity,), jnp.int32))
 
 
-@_util.guard_nan(alpha=0.3, lam=1.5, lambda_range=1.5, temperature=0.25, tol=1e-6, range_scale=0.5,
-           weight_threshold=0.01, large_factor=1.5, state_init=init_state)
+@_util.guard_nan(
+    alpha=0.3,
+    lam=1.5,
+    lambda_range=1.5,
+    temperature=0.25,
+    tol=1e-6,
+    range_scale=0.5,
+    weight_threshold=0.01,
+    large_factor=1.5,
+    state_init=init_state,
+)
 def gmrcm(
     gm: GaussianMixture,
     state: GMRCMState | None = None,
@@ -114,9 +123,18 @@ def gmrcm(
     """
     del key
     _validate.validate_mixture(gm)
-    validate_search_args(lam=lam, lambda_range=lambda_range, alpha=alpha, temperature=temperature,
-                         tol=tol, range_scale=range_scale, grid_size=grid_size,
-                         newton_steps=newton_steps, dims=dims, dim=gm.dim)
+    validate_search_args(
+        lam=lam,
+        lambda_range=lambda_range,
+        alpha=alpha,
+        temperature=temperature,
+        tol=tol,
+        range_scale=range_scale,
+        grid_size=grid_size,
+        newton_steps=newton_steps,
+        dims=dims,
+        dim=gm.dim,
+    )
     _validate.validate_nonneg(weight_threshold, "weight_threshold")
     _validate.validate_nonneg(large_factor, "large_factor")
     low_steps = _validate.validate_count(low_steps, "low_steps", 1, 2**31 - 1)
@@ -127,15 +145,44 @@ def gmrcm(
     if not isinstance(state, GMRCMState) or jnp.shape(state.low_count) != (K,):
         raise ValueError(f"state: expected a GMRCMState with low_count of shape ({K},)")
     dims = None if dims is None else tuple(int(i) for i in dims)
-    return _gmrcm_core(gm, state, alpha, lam, tuple(lambda_range), temperature, tol, range_scale,
-                       weight_threshold, large_factor, low_steps=low_steps, grid_size=grid_size,
-                       newton_steps=newton_steps, dims=dims, capacity=cap)
+    return _gmrcm_core(
+        gm,
+        state,
+        alpha,
+        lam,
+        tuple(lambda_range),
+        temperature,
+        tol,
+        range_scale,
+        weight_threshold,
+        large_factor,
+        low_steps=low_steps,
+        grid_size=grid_size,
+        newton_steps=newton_steps,
+        dims=dims,
+        capacity=cap,
+    )
 
 
 @partial(jax.jit, static_argnames=("low_steps", "grid_size", "newton_steps", "dims", "capacity"))
-def _gmrcm_core(gm, state, alpha, lam, lambda_range, temperature, tol, range_scale,
-                weight_threshold, large_factor, *, low_steps, grid_size, newton_steps, dims,
-                capacity):
+def _gmrcm_core(
+    gm,
+    state,
+    alpha,
+    lam,
+    lambda_range,
+    temperature,
+    tol,
+    range_scale,
+    weight_threshold,
+    large_factor,
+    *,
+    low_steps,
+    grid_size,
+    newton_steps,
+    dims,
+    capacity,
+):
     K = gm.capacity
     cap = capacity
     dtype = gm.means.dtype
@@ -168,16 +215,29 @@ def _gmrcm_core(gm, state, alpha, lam, lambda_range, temperature, tol, range_sca
     # Steps 5–7: search λ, judgment matrix, clusters, re-assignment; EISE of eq 10.
     if lam is None:
         res = search_confidence(
-            to_cluster, lam_lo=lambda_range[0], lam_hi=lambda_range[1], grid_size=grid_size,
-            newton_steps=newton_steps, temperature=temperature, tol=tol, alpha=alpha,
-            method="moment", regularizer="log10", ise_scale=1.0, dims=dims, triangular=True,
-            subset_rule="absorb", range_scale=range_scale,
+            to_cluster,
+            lam_lo=lambda_range[0],
+            lam_hi=lambda_range[1],
+            grid_size=grid_size,
+            newton_steps=newton_steps,
+            temperature=temperature,
+            tol=tol,
+            alpha=alpha,
+            method="moment",
+            regularizer="log10",
+            ise_scale=1.0,
+            dims=dims,
+            triangular=True,
+            subset_rule="absorb",
+            range_scale=range_scale,
         )
     else:
-        cl = gauss_cluster(to_cluster, lam, dims=dims, triangular=True, subset_rule="absorb",
-                           range_scale=range_scale)
-        value, merged, n = hard_eise(to_cluster, cl.labels, alpha=alpha, method="moment",
-                                     regularizer="log10", ise_scale=1.0)
+        cl = gauss_cluster(
+            to_cluster, lam, dims=dims, triangular=True, subset_rule="absorb", range_scale=range_scale
+        )
+        value, merged, n = hard_eise(
+            to_cluster, cl.labels, alpha=alpha, method="moment", regularizer="log10", ise_scale=1.0
+        )
         res = fixed_result(to_cluster, lam, cl.labels, value, merged, n)
 
     # Step 8: moment-preserving merge (eqs 16–18); passed-through slots are their own cluster.
@@ -196,8 +256,9 @@ def _gmrcm_core(gm, state, alpha, lam, lambda_range, temperature, tol, range_sca
     aux = search_aux(res, n_ref)
     aux["n_dropped"] = jnp.sum(drop.astype(jnp.int32))
     aux["n_passed"] = jnp.sum(big.astype(jnp.int32))
-    info = make_info(gm, out, labels_out, pruned_mass=total - kept_mass, overflow=overflow,
-                     cost=res.eise, aux=aux)
+    info = make_info(
+        gm, out, labels_out, pruned_mass=total - kept_mass, overflow=overflow, cost=res.eise, aux=aux
+    )
     return out, GMRCMState(out_count), info
 
 
@@ -228,17 +289,31 @@ class GMRCM:
         """A fresh state for mixtures of ``capacity`` slots."""
         return init_state(capacity)
 
-    def reduce(self, gm: GaussianMixture, state: GMRCMState | None, *,
-             key: jax.Array | None = None) -> tuple[GaussianMixture, GMRCMState, ReductionInfo]:
+    def reduce(
+        self, gm: GaussianMixture, state: GMRCMState | None, *, key: jax.Array | None = None
+    ) -> tuple[GaussianMixture, GMRCMState, ReductionInfo]:
         """One reduction with the carried state: ``(reduced, new_state, info)``."""
         return gmrcm(
-            gm, state, alpha=self.alpha, lam=self.lam, lambda_range=self.lambda_range,
-            grid_size=self.grid_size, newton_steps=self.newton_steps,
-            temperature=self.temperature, tol=self.tol, range_scale=self.range_scale,
-            weight_threshold=self.weight_threshold, low_steps=self.low_steps,
-            large_factor=self.large_factor, dims=self.dims, capacity=self.capacity, key=key,
+            gm,
+            state,
+            alpha=self.alpha,
+            lam=self.lam,
+            lambda_range=self.lambda_range,
+            grid_size=self.grid_size,
+            newton_steps=self.newton_steps,
+            temperature=self.temperature,
+            tol=self.tol,
+            range_scale=self.range_scale,
+            weight_threshold=self.weight_threshold,
+            low_steps=self.low_steps,
+            large_factor=self.large_factor,
+            dims=self.dims,
+            capacity=self.capacity,
+            key=key,
         )
 
-    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: jax.Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         out, _, info = self.reduce(gm, None, key=key)
         return out, info

@@ -179,7 +179,7 @@ class KMeans(Stateless):
     tol: float = static_field(0.0)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
-        return kmeans(
-            gm, self.num_out, max_iter=self.max_iter, tol=self.tol, capacity=self.capacity, key=key
-        )
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
+        return kmeans(gm, self.num_out, max_iter=self.max_iter, tol=self.tol, capacity=self.capacity, key=key)

@@ -210,9 +210,7 @@ def merge_labels(
     # per-slot averaging coefficient: w / W_c, or 1 / n_c for a cluster of zero total weight
     Wk = W[jnp.minimum(seg, num_out - 1)]
     nk = count[jnp.minimum(seg, num_out - 1)]
-    lam = jnp.where(
-        valid, jnp.where(Wk > 0, _safe_div(w, Wk), _safe_div(jnp.ones_like(w), nk)), 0.0
-    )
+    lam = jnp.where(valid, jnp.where(Wk > 0, _safe_div(w, Wk), _safe_div(jnp.ones_like(w), nk)), 0.0)
     eye = jnp.eye(d, dtype=dtype)
     covs = jnp.where(valid[:, None, None], gm.covs, eye)
     if method == "moment":

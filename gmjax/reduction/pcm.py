@@ -131,19 +131,43 @@ def search_aux(res: SearchResult, n_ref: Array) -> dict[str, Array]:
     }
 
 
-def fixed_result(gm: GaussianMixture, lam: ArrayLike, labels: Array, value: Array,
-                 merged: GaussianMixture, n: Array) -> SearchResult:
+def fixed_result(
+    gm: GaussianMixture, lam: ArrayLike, labels: Array, value: Array, merged: GaussianMixture, n: Array
+) -> SearchResult:
     """A :class:`SearchResult` for a clustering at a given ``λ`` (no search)."""
     dtype = gm.means.dtype
     lam = jnp.asarray(lam, dtype)
     nan = jnp.asarray(jnp.nan, dtype)
-    return SearchResult(lam, value, labels, merged, n, lam[None], value[None], n[None], lam, value,
-                        lam, value, nan, jnp.zeros((), jnp.int32), jnp.zeros((), bool),
-                        jnp.zeros((), bool))
+    return SearchResult(
+        lam,
+        value,
+        labels,
+        merged,
+        n,
+        lam[None],
+        value[None],
+        n[None],
+        lam,
+        value,
+        lam,
+        value,
+        nan,
+        jnp.zeros((), jnp.int32),
+        jnp.zeros((), bool),
+        jnp.zeros((), bool),
+    )
 
 
-@_util.guard_nan(rho=0.9544, alpha=1e-3, lam=2.0, lambda_range=2.0, temperature=0.2, tol=1e-6, range_scale=0.5,
-           gate_temperature=0.0)
+@_util.guard_nan(
+    rho=0.9544,
+    alpha=1e-3,
+    lam=2.0,
+    lambda_range=2.0,
+    temperature=0.2,
+    tol=1e-6,
+    range_scale=0.5,
+    gate_temperature=0.0,
+)
 def pcm(
     gm: GaussianMixture,
     *,
@@ -215,31 +239,88 @@ def pcm(
         raise ValueError(f"merge: expected 'ci' or 'moment', got {merge!r}")
     validate_mode(mode)
     if mode != "hard" and lam is None:
-        raise ValueError(f"lam: mode={mode!r} needs a fixed lam (the searched λ* is an argmin of a "
-                         "piecewise-constant EISE, with no useful gradient); set lam=...")
+        raise ValueError(
+            f"lam: mode={mode!r} needs a fixed lam (the searched λ* is an argmin of a "
+            "piecewise-constant EISE, with no useful gradient); set lam=..."
+        )
     validate_temperature(gate_temperature, "gate_temperature")
-    validate_search_args(lam=lam, lambda_range=lambda_range, alpha=alpha, temperature=temperature,
-                         tol=tol, range_scale=range_scale, grid_size=grid_size,
-                         newton_steps=newton_steps, dims=dims, dim=gm.dim,
-                         allow_zero_temperature=mode != "hard")
+    validate_search_args(
+        lam=lam,
+        lambda_range=lambda_range,
+        alpha=alpha,
+        temperature=temperature,
+        tol=tol,
+        range_scale=range_scale,
+        grid_size=grid_size,
+        newton_steps=newton_steps,
+        dims=dims,
+        dim=gm.dim,
+        allow_zero_temperature=mode != "hard",
+    )
     if max_components is not None:
         max_components = _validate.validate_count(max_components, "max_components", 1, 2**31 - 1)
     cap = _validate.validate_capacity(capacity, gm)
     dims = None if dims is None else tuple(dims)
 
     if mode != "hard":
-        return _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, tuple(lambda_range),
-                              range_scale, grid_size=grid_size, max_components=max_components,
-                              dims=dims, merge=merge, prune=prune, mode=mode, capacity=cap)
-    return _pcm_core(gm, rho, alpha, lam, tuple(lambda_range), temperature, tol, range_scale,
-                     max_components=max_components, grid_size=grid_size,
-                     newton_steps=newton_steps, dims=dims, merge=merge, prune=prune, capacity=cap)
+        return _soft_pcm_core(
+            gm,
+            rho,
+            lam,
+            alpha,
+            gate_temperature,
+            temperature,
+            tuple(lambda_range),
+            range_scale,
+            grid_size=grid_size,
+            max_components=max_components,
+            dims=dims,
+            merge=merge,
+            prune=prune,
+            mode=mode,
+            capacity=cap,
+        )
+    return _pcm_core(
+        gm,
+        rho,
+        alpha,
+        lam,
+        tuple(lambda_range),
+        temperature,
+        tol,
+        range_scale,
+        max_components=max_components,
+        grid_size=grid_size,
+        newton_steps=newton_steps,
+        dims=dims,
+        merge=merge,
+        prune=prune,
+        capacity=cap,
+    )
 
 
-@partial(jax.jit, static_argnames=("max_components", "grid_size", "newton_steps", "dims", "merge",
-                                   "prune", "capacity"))
-def _pcm_core(gm, rho, alpha, lam, lambda_range, temperature, tol, range_scale, *,
-              max_components, grid_size, newton_steps, dims, merge, prune, capacity):
+@partial(
+    jax.jit,
+    static_argnames=("max_components", "grid_size", "newton_steps", "dims", "merge", "prune", "capacity"),
+)
+def _pcm_core(
+    gm,
+    rho,
+    alpha,
+    lam,
+    lambda_range,
+    temperature,
+    tol,
+    range_scale,
+    *,
+    max_components,
+    grid_size,
+    newton_steps,
+    dims,
+    merge,
+    prune,
+    capacity,
+):
     K = gm.capacity
     slots = jnp.arange(K, dtype=jnp.int32)
     # At most N_u components survive the pruning, so cluster and merge in N_u slots: the overlap
@@ -257,22 +338,41 @@ def _pcm_core(gm, rho, alpha, lam, lambda_range, temperature, tol, range_scale, 
 
     if lam is None:
         res = search_confidence(
-            work, lam_lo=lambda_range[0], lam_hi=lambda_range[1], grid_size=grid_size,
-            newton_steps=newton_steps, temperature=temperature, tol=tol, alpha=alpha,
-            method=merge, regularizer="exp", ise_scale=0.5, dims=dims, triangular=False,
-            subset_rule="split", range_scale=range_scale,
+            work,
+            lam_lo=lambda_range[0],
+            lam_hi=lambda_range[1],
+            grid_size=grid_size,
+            newton_steps=newton_steps,
+            temperature=temperature,
+            tol=tol,
+            alpha=alpha,
+            method=merge,
+            regularizer="exp",
+            ise_scale=0.5,
+            dims=dims,
+            triangular=False,
+            subset_rule="split",
+            range_scale=range_scale,
         )
     else:
         cl = gauss_cluster(work, lam, dims=dims, range_scale=range_scale)
-        value, merged, n = hard_eise(work, cl.labels, alpha=alpha, method=merge,
-                                     regularizer="exp", ise_scale=0.5)
+        value, merged, n = hard_eise(
+            work, cl.labels, alpha=alpha, method=merge, regularizer="exp", ise_scale=0.5
+        )
         res = fixed_result(work, lam, cl.labels, value, merged, n)
 
     merged = merge_labels(work, res.labels, Kw, merge)  # output slot = cluster head (eqs 38–39)
     labels_in = jnp.where(to_work >= 0, res.labels[jnp.maximum(to_work, 0)], -1)
     out, labels_out, overflow, _ = _util.finalize(gm, merged, labels_in, capacity)
-    info = make_info(gm, out, labels_out, pruned_mass=pruned_mass, overflow=overflow,
-                     cost=res.eise, aux=search_aux(res, n_ref))
+    info = make_info(
+        gm,
+        out,
+        labels_out,
+        pruned_mass=pruned_mass,
+        overflow=overflow,
+        cost=res.eise,
+        aux=search_aux(res, n_ref),
+    )
     return out, info
 
 
@@ -287,20 +387,49 @@ def _gated_step(gm, rho, gate_temperature, relaxed, *, max_components, prune, mo
     if not prune:
         live = gm.mask.astype(dtype)
         slots = jnp.arange(gm.capacity, dtype=jnp.int32)
-        return (gm, live, jnp.where(gm.mask, slots, -1), jnp.zeros((), gm.weights.dtype),
-                jnp.zeros((), bool), jnp.sum(live))
+        return (
+            gm,
+            live,
+            jnp.where(gm.mask, slots, -1),
+            jnp.zeros((), gm.weights.dtype),
+            jnp.zeros((), bool),
+            jnp.sum(live),
+        )
     gates = censored_gates(gm, rho, gate_temperature, max_components=max_components, mode=mode)
     # a relaxed reducer (T_ρ or τ > 0) drops negligible components (see gated_prune)
     floor = jnp.where(relaxed, negligible_floor(1.0, mode, dtype), 0.0)
     work, pinfo = gated_prune(gm, gates, Kw, floor)
-    return (work, pinfo.aux["gates"], pinfo.labels, pinfo.pruned_mass, pinfo.overflow,
-            pinfo.aux["n_expected"])
+    return (
+        work,
+        pinfo.aux["gates"],
+        pinfo.labels,
+        pinfo.pruned_mass,
+        pinfo.overflow,
+        pinfo.aux["n_expected"],
+    )
 
 
-@partial(jax.jit, static_argnames=("grid_size", "max_components", "dims", "merge", "prune", "mode",
-                                   "capacity"))
-def _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, lambda_range, range_scale, *,
-                   grid_size, max_components, dims, merge, prune, mode, capacity):
+@partial(
+    jax.jit, static_argnames=("grid_size", "max_components", "dims", "merge", "prune", "mode", "capacity")
+)
+def _soft_pcm_core(
+    gm,
+    rho,
+    lam,
+    alpha,
+    gate_temperature,
+    temperature,
+    lambda_range,
+    range_scale,
+    *,
+    grid_size,
+    max_components,
+    dims,
+    merge,
+    prune,
+    mode,
+    capacity,
+):
     """PCM at a fixed ``λ`` with relaxed pruning and relaxed memberships (``mode`` soft / ST).
 
     The pruning uses :func:`censored_gates` (``T_ρ``) and the clustering :func:`soft_membership`
@@ -321,8 +450,8 @@ def _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, lambda_ra
     T_lam = jnp.asarray(temperature, dtype)
     relaxed = (jnp.asarray(gate_temperature, dtype) > 0) | (T_lam > 0)
     work, g_work, to_work, pruned_mass, p_overflow, n_gates = _gated_step(
-        gm, rho, gate_temperature, relaxed, max_components=max_components, prune=prune, mode=mode,
-        Kw=Kw)
+        gm, rho, gate_temperature, relaxed, max_components=max_components, prune=prune, mode=mode, Kw=Kw
+    )
     n_ref = jnp.sum(work.mask.astype(jnp.int32))
     lo, hi = (jnp.asarray(v, dtype) for v in lambda_range)
     grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, grid_size, dtype=dtype)
@@ -331,8 +460,9 @@ def _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, lambda_ra
 
     # hard clustering at λ: exactly pcm(lam=λ)'s merge and EISE
     merged_hard = merge_labels(work, labels, Kw, merge)
-    value_hard, _, n_hard = hard_eise(work, labels, alpha=alpha, method=merge, regularizer="exp",
-                                      ise_scale=0.5)
+    value_hard, _, n_hard = hard_eise(
+        work, labels, alpha=alpha, method=merge, regularizer="exp", ise_scale=0.5
+    )
     n_hard_f = n_hard.astype(dtype)
 
     # soft clusters: fractional merge (eqs 38–39 with weights A_mc w_m) and the relaxed EISE (eq 29)
@@ -341,8 +471,9 @@ def _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, lambda_ra
     onehots = jax.vmap(lambda lab: onehot_membership(lab, Kw, dtype))(grid_labels)  # (G, K, C)
     exists = jnp.max(onehots * g_work[None, :, None], axis=1)  # (G, C)
     n_soft = jnp.sum(pi[:, None] * exists)
-    value_soft = eise(work, A_live, merged_soft, n_soft, n_ref, alpha=alpha, regularizer="exp",
-                      ise_scale=0.5, clip=False)
+    value_soft = eise(
+        work, A_live, merged_soft, n_soft, n_ref, alpha=alpha, regularizer="exp", ise_scale=0.5, clip=False
+    )
     soft_on = T_lam > 0  # τ = 0: the hard clustering, merged and costed exactly as pcm does
     soft_f = _tree_select(soft_on, merged_soft, merged_hard)
     soft_n = jnp.where(soft_on, n_soft, n_hard_f)
@@ -352,18 +483,29 @@ def _soft_pcm_core(gm, rho, lam, alpha, gate_temperature, temperature, lambda_ra
     else:  # straight-through: the hard clusters' values, the soft clusters' gradients
         both = merged_hard.mask & soft_f.mask
         st = lambda h, s: jnp.where(  # noqa: E731
-            both.reshape(both.shape + (1,) * (h.ndim - 1)), straight_through(h, s), h)
-        merged = GaussianMixture(st(merged_hard.weights, soft_f.weights), st(merged_hard.means, soft_f.means),
-                                 st(merged_hard.covs, soft_f.covs), merged_hard.mask)
+            both.reshape(both.shape + (1,) * (h.ndim - 1)), straight_through(h, s), h
+        )
+        merged = GaussianMixture(
+            st(merged_hard.weights, soft_f.weights),
+            st(merged_hard.means, soft_f.means),
+            st(merged_hard.covs, soft_f.covs),
+            merged_hard.mask,
+        )
         value = straight_through(value_hard, soft_v)
         n_exp = straight_through(n_hard_f, soft_n)
     merged = sanitize(merged)
     labels_in = jnp.where(to_work >= 0, labels[jnp.maximum(to_work, 0)], -1)
     out, labels_out, overflow, _ = _util.finalize(gm, merged, labels_in, capacity)
-    aux = {"lambda": lam, "n_clusters": n_hard, "n_reference": n_ref, "n_expected": n_exp,
-           "n_pruned_expected": n_gates}
-    info = make_info(gm, out, labels_out, pruned_mass=pruned_mass, overflow=overflow | p_overflow,
-                     cost=value, aux=aux)
+    aux = {
+        "lambda": lam,
+        "n_clusters": n_hard,
+        "n_reference": n_ref,
+        "n_expected": n_exp,
+        "n_pruned_expected": n_gates,
+    }
+    info = make_info(
+        gm, out, labels_out, pruned_mass=pruned_mass, overflow=overflow | p_overflow, cost=value, aux=aux
+    )
     return out, info
 
 
@@ -394,11 +536,26 @@ class PCM(Stateless):
     gate_temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm: GaussianMixture, *, key: jax.Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: jax.Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return pcm(
-            gm, rho=self.rho, max_components=self.max_components, alpha=self.alpha, lam=self.lam,
-            lambda_range=self.lambda_range, grid_size=self.grid_size,
-            newton_steps=self.newton_steps, temperature=self.temperature, tol=self.tol,
-            range_scale=self.range_scale, dims=self.dims, merge=self.merge, prune=self.prune,
-            capacity=self.capacity, gate_temperature=self.gate_temperature, mode=self.mode, key=key,
+            gm,
+            rho=self.rho,
+            max_components=self.max_components,
+            alpha=self.alpha,
+            lam=self.lam,
+            lambda_range=self.lambda_range,
+            grid_size=self.grid_size,
+            newton_steps=self.newton_steps,
+            temperature=self.temperature,
+            tol=self.tol,
+            range_scale=self.range_scale,
+            dims=self.dims,
+            merge=self.merge,
+            prune=self.prune,
+            capacity=self.capacity,
+            gate_temperature=self.gate_temperature,
+            mode=self.mode,
+            key=key,
         )

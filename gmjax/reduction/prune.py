@@ -257,9 +257,12 @@ class PruneThreshold(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
-        return prune_threshold(gm, self.threshold, temperature=self.temperature, mode=self.mode,
-                               capacity=self.capacity, key=key)
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
+        return prune_threshold(
+            gm, self.threshold, temperature=self.temperature, mode=self.mode, capacity=self.capacity, key=key
+        )
 
 
 @pytree_dataclass
@@ -269,7 +272,9 @@ class PruneTop(Stateless):
     num_out: int = static_field(10)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_top(gm, self.num_out, capacity=self.capacity, key=key)
 
 
@@ -288,8 +293,15 @@ class PruneCensored(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return prune_censored(
-            gm, self.rho, self.max_components, temperature=self.temperature, mode=self.mode,
-            capacity=self.capacity, key=key,
+            gm,
+            self.rho,
+            self.max_components,
+            temperature=self.temperature,
+            mode=self.mode,
+            capacity=self.capacity,
+            key=key,
         )

@@ -142,10 +142,14 @@ class Refined(Stateless):
     n_steps: int = static_field(200)
     learning_rate: Any = 1e-2
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         red, info = self.base(gm, key=key)
         out, rinfo = ise_refine(red, gm, n_steps=self.n_steps, learning_rate=self.learning_rate)
         return out, info._replace(
-            n_out=rinfo.n_out, cost=rinfo.cost, aux={**info.aux, "initial_ise": rinfo.aux["initial_ise"]},
+            n_out=rinfo.n_out,
+            cost=rinfo.cost,
+            aux={**info.aux, "initial_ise": rinfo.aux["initial_ise"]},
             invalid_threshold=info.invalid_threshold | rinfo.invalid_threshold,
         )

@@ -110,8 +110,9 @@ def soft_step(x: ArrayLike, temperature: ArrayLike, *, mode: str = "soft", stric
 # ----------------------------------------------------------------------------- pruning gates
 
 
-def threshold_gates(gm: GaussianMixture, threshold: ArrayLike, temperature: ArrayLike, *,
-                    mode: str = "soft") -> Array:
+def threshold_gates(
+    gm: GaussianMixture, threshold: ArrayLike, temperature: ArrayLike, *, mode: str = "soft"
+) -> Array:
     """``(K,)`` gates of weight-threshold pruning: ``σ((w_k - threshold) / T)``, 0 on padding.
 
     The hard gate ``[w_k >= threshold]`` is :func:`gmjax.reduction.prune_threshold`'s rule; ``T`` is
@@ -122,8 +123,14 @@ def threshold_gates(gm: GaussianMixture, threshold: ArrayLike, temperature: Arra
     return jnp.where(gm.mask, g, 0.0)
 
 
-def censored_gates(gm: GaussianMixture, rho: ArrayLike, temperature: ArrayLike, *,
-                   max_components: int | None = None, mode: str = "soft") -> Array:
+def censored_gates(
+    gm: GaussianMixture,
+    rho: ArrayLike,
+    temperature: ArrayLike,
+    *,
+    max_components: int | None = None,
+    mode: str = "soft",
+) -> Array:
     """``(K,)`` gates of the j-th order statistic censored pruning (seed 000 eqs 19–22).
 
     With the live weights in descending order, the component of rank ``r`` (0-based) survives the
@@ -179,15 +186,14 @@ def select_kept(gm: GaussianMixture, keep: Array, w: Array, capacity: int) -> tu
         _, idx_full = jax.lax.top_k(score, K)
         idx = jnp.concatenate([idx_full, jnp.zeros(capacity - K, idx_full.dtype)])
         valid = jnp.concatenate([keep[idx_full], jnp.zeros(capacity - K, bool)])
-    pos = jnp.full(K, -1, jnp.int32).at[idx].max(
-        jnp.where(valid, jnp.arange(capacity, dtype=jnp.int32), -1)
-    )
+    pos = jnp.full(K, -1, jnp.int32).at[idx].max(jnp.where(valid, jnp.arange(capacity, dtype=jnp.int32), -1))
     return idx, valid, jnp.where(gm.mask, pos, -1)
 
 
 @partial(jax.jit, static_argnames=("capacity",))
-def gated_prune(gm: GaussianMixture, gates: Array, capacity: int,
-                floor: ArrayLike = 0.0) -> tuple[GaussianMixture, ReductionInfo]:
+def gated_prune(
+    gm: GaussianMixture, gates: Array, capacity: int, floor: ArrayLike = 0.0
+) -> tuple[GaussianMixture, ReductionInfo]:
     """Scale every weight by its gate, drop gate-0 slots, keep the heaviest ``capacity``, renormalise.
 
     With 0/1 gates this is exactly the hard pruning of :func:`gmjax.reduction.prune_threshold` /
@@ -230,18 +236,31 @@ def gated_prune(gm: GaussianMixture, gates: Array, capacity: int,
     ok = kept_mass > 0
     scale = jnp.where(ok, total / jnp.where(ok, kept_mass, 1.0), 1.0)
     out = sanitize(out._replace(weights=gw * scale, mask=sel_valid))
-    info = make_info(gm, out, labels, pruned_mass=total - kept_mass, overflow=n_keep > capacity,
-                     aux={"scale": scale, "gates": g_out, "n_expected": jnp.sum(gates)})
+    info = make_info(
+        gm,
+        out,
+        labels,
+        pruned_mass=total - kept_mass,
+        overflow=n_keep > capacity,
+        aux={"scale": scale, "gates": g_out, "n_expected": jnp.sum(gates)},
+    )
     return out, info
 
 
 # ----------------------------------------------------------------------------- soft memberships
 
 
-def soft_membership(gm: GaussianMixture, lam: ArrayLike, grid: Array, temperature: ArrayLike, *,
-                    dims: Sequence[int] | None = None, range_scale: ArrayLike = 0.5,
-                    triangular: bool = False,
-                    subset_rule: str = "split") -> tuple[Array, Array, Array, Array]:
+def soft_membership(
+    gm: GaussianMixture,
+    lam: ArrayLike,
+    grid: Array,
+    temperature: ArrayLike,
+    *,
+    dims: Sequence[int] | None = None,
+    range_scale: ArrayLike = 0.5,
+    triangular: bool = False,
+    subset_rule: str = "split",
+) -> tuple[Array, Array, Array, Array]:
     """Soft similarity memberships at ``λ``, shared with PCM's confidence search.
 
     The hard clustering (seed 000 eqs 23–28, :func:`gmjax.reduction.gauss_cluster`) is piecewise
@@ -271,8 +290,17 @@ def soft_membership(gm: GaussianMixture, lam: ArrayLike, grid: Array, temperatur
     dtype = gm.means.dtype
     lam = jnp.asarray(lam, dtype)
     lam_sg = jax.lax.stop_gradient(lam)
-    cluster = lambda l: gauss_cluster(g, l, triangular=triangular, subset_rule=subset_rule,  # noqa: E731
-                                      range_scale=range_scale, delta=delta, dist=dist).labels
+    cluster = lambda l: (  # noqa: E731
+        gauss_cluster(
+            g,
+            l,
+            triangular=triangular,
+            subset_rule=subset_rule,
+            range_scale=range_scale,
+            delta=delta,
+            dist=dist,
+        ).labels
+    )
     labels = cluster(lam_sg)
     grid = jnp.asarray(grid, dtype)
     grid_labels = jax.lax.map(cluster, grid)
@@ -289,8 +317,9 @@ def soft_membership(gm: GaussianMixture, lam: ArrayLike, grid: Array, temperatur
 # ----------------------------------------------------------------------------- soft split trigger
 
 
-def soft_split_gate(temperature: float = 0.0, *, mode: str = "soft",
-                    relative: bool = False) -> Callable[[Array, Array], Array]:
+def soft_split_gate(
+    temperature: float = 0.0, *, mode: str = "soft", relative: bool = False
+) -> Callable[[Array, Array], Array]:
     """A split trigger ``gate(ψ, ψ_th) -> [0, 1]`` for :class:`gmjax.filters.agsf.AGSFConfig`.
 
     Seed 001 splits a component when its degree of nonlinearity reaches the threshold (eqs 30–31,

@@ -31,7 +31,16 @@ from gmjax.reduction.base import ReductionInfo, Stateless
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]
 
 
-def runnalls_cost(wi: Array, mi: Array, Pi: Array, wj: Array, mj: Array, Pj: Array, ldi: Array | None = None, ldj: Array | None = None) -> Array:
+def runnalls_cost(
+    wi: Array,
+    mi: Array,
+    Pi: Array,
+    wj: Array,
+    mj: Array,
+    Pj: Array,
+    ldi: Array | None = None,
+    ldj: Array | None = None,
+) -> Array:
     """Runnalls' upper bound on the KL discrimination caused by merging ``i`` and ``j``.
 
     ``B(i, j) = 1/2 [(w_i + w_j) log det P_ij - w_i log det P_i - w_j log det P_j]`` with ``P_ij``
@@ -45,7 +54,6 @@ def runnalls_cost(wi: Array, mi: Array, Pi: Array, wj: Array, mj: Array, Pj: Arr
     return 0.5 * (W * gaussian.spd_logdet(Pij) - wi * ldi - wj * ldj)
 
 
-
 @partial(jax.jit, static_argnames=("num_out", "capacity"))
 def _runnalls(gm, num_out, threshold, capacity):
     threshold = jax.lax.stop_gradient(threshold)  # piecewise constant: zero gradient a.e.
@@ -56,8 +64,14 @@ def _runnalls_core(gm, num_out, threshold, capacity):
     w = jnp.where(gm.mask, gm.weights, 0.0)
     ld = gaussian.spd_logdet(gm.covs)
     C = runnalls_cost(
-        w[:, None], gm.means[:, None], gm.covs[:, None], w[None, :], gm.means[None], gm.covs[None],
-        ld[:, None], ld[None, :],
+        w[:, None],
+        gm.means[:, None],
+        gm.covs[:, None],
+        w[None, :],
+        gm.means[None],
+        gm.covs[None],
+        ld[:, None],
+        ld[None, :],
     )
 
     def row_cost(s, i):
@@ -67,7 +81,6 @@ def _runnalls_core(gm, num_out, threshold, capacity):
     body, n_steps = greedy_steps(gm, num_out, threshold, upper_argmin, row_cost)
     s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, clean_upper(C, gm.mask)))
     return finish(gm, s, n_steps, capacity)
-
 
 
 @_util.guard_nan(threshold=float("inf"))
@@ -109,6 +122,7 @@ class Runnalls(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return runnalls(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)
-

@@ -33,7 +33,6 @@ def salmond_cost(wi: Array, mi: Array, wj: Array, mj: Array, Pinv_total: Array) 
     return coef * jnp.einsum("...i,ij,...j->...", diff, Pinv_total, diff)
 
 
-
 @partial(jax.jit, static_argnames=("num_out", "capacity"))
 def _salmond(gm, num_out, threshold, capacity):
     threshold = jax.lax.stop_gradient(threshold)
@@ -53,7 +52,6 @@ def _salmond_core(gm, num_out, threshold, capacity):
     s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, clean_upper(C, gm.mask)))
     out, info = finish(gm, s, n_steps, capacity)
     return out, info
-
 
 
 @_util.guard_nan(threshold=float("inf"))
@@ -84,6 +82,7 @@ class Salmond(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return salmond(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)
-

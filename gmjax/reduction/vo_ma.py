@@ -91,9 +91,7 @@ def vo_ma(
         max_components = _validate.validate_count(max_components, "max_components", 1, gm.capacity)
     cap = _validate.validate_capacity(capacity, gm)
     dt = gm.weights.dtype
-    return _vo_ma(
-        gm, jnp.asarray(prune_threshold, dt), jnp.asarray(merge_threshold, dt), max_components, cap
-    )
+    return _vo_ma(gm, jnp.asarray(prune_threshold, dt), jnp.asarray(merge_threshold, dt), max_components, cap)
 
 
 @pytree_dataclass
@@ -105,8 +103,14 @@ class VoMa(Stateless):
     max_components: int | None = static_field(None)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return vo_ma(
-            gm, self.prune_threshold, self.merge_threshold, self.max_components,
-            capacity=self.capacity, key=key,
+            gm,
+            self.prune_threshold,
+            self.merge_threshold,
+            self.max_components,
+            capacity=self.capacity,
+            key=key,
         )

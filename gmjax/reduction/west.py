@@ -90,8 +90,15 @@ class West(Stateless):
     enhanced: bool = static_field(False)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return west(
-            gm, self.num_out, self.threshold, metric=self.metric, enhanced=self.enhanced,
-            capacity=self.capacity, key=key,
+            gm,
+            self.num_out,
+            self.threshold,
+            metric=self.metric,
+            enhanced=self.enhanced,
+            capacity=self.capacity,
+            key=key,
         )

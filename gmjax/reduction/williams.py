@@ -29,11 +29,15 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
     d = gm.dim
     eye = jnp.eye(d, dtype=gm.covs.dtype)
     w0 = jnp.where(gm.mask, gm.weights, 0.0)
-    Jhh = w0 @ jnp.where(
-        gm.mask[:, None] & gm.mask[None, :],
-        overlap(gm.means[:, None], gm.covs[:, None], gm.means[None], gm.covs[None]),
-        0.0,
-    ) @ w0
+    Jhh = (
+        w0
+        @ jnp.where(
+            gm.mask[:, None] & gm.mask[None, :],
+            overlap(gm.means[:, None], gm.covs[:, None], gm.means[None], gm.covs[None]),
+            0.0,
+        )
+        @ w0
+    )
     upper = jnp.arange(K)[:, None] < jnp.arange(K)[None, :]
 
     def body(step, s):
@@ -43,7 +47,9 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
         Jrr = w @ Sw
         Jhr = w @ a
         # merge candidates (K, K)
-        Wc, mc, Pc = gaussian.moment_merge_pair(w[:, None], s.m[:, None], s.P[:, None], w[None], s.m[None], s.P[None])
+        Wc, mc, Pc = gaussian.moment_merge_pair(
+            w[:, None], s.m[:, None], s.P[:, None], w[None], s.m[None], s.P[None]
+        )
         Sc = overlap(mc[:, :, None], Pc[:, :, None], s.m[None, None], s.P[None, None])  # (K,K,K)
         Sc = jnp.where(s.mask[None, None, :], Sc, 0.0)
         ac = overlap(mc[:, :, None], Pc[:, :, None], gm.means[None, None], gm.covs[None, None]) @ w0
@@ -57,9 +63,14 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
         Sii = jnp.diag(S)
         Jhr_m = Jhr - wi * a[:, None] - wj * a[None, :] + Wc * ac
         Jrr_m = (
-            Jrr - 2 * wi * Sw[:, None] - 2 * wj * Sw[None, :]
-            + wi**2 * Sii[:, None] + wj**2 * Sii[None, :] + 2 * wi * wj * S
-            + Wc**2 * Scc + 2 * Wc * rest
+            Jrr
+            - 2 * wi * Sw[:, None]
+            - 2 * wj * Sw[None, :]
+            + wi**2 * Sii[:, None]
+            + wj**2 * Sii[None, :]
+            + 2 * wi * wj * S
+            + Wc**2 * Scc
+            + 2 * Wc * rest
         )
         cost_m = Jhh - 2 * Jhr_m + Jrr_m
         valid_m = upper & s.mask[:, None] & s.mask[None, :]
@@ -96,8 +107,14 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
         labels = jnp.where(dp & (s.labels == i), -1, labels)
         act = jnp.where(do, jnp.stack([i, jnp.where(dm, j, -1)]), -2).astype(jnp.int32)
         return ISEGreedyState(
-            w_new, m_new, P_new, mask, labels, s.n_live - do.astype(jnp.int32),
-            jnp.where(do, c, s.cost), s.actions.at[step].set(act),
+            w_new,
+            m_new,
+            P_new,
+            mask,
+            labels,
+            s.n_live - do.astype(jnp.int32),
+            jnp.where(do, c, s.cost),
+            s.actions.at[step].set(act),
         )
 
     n_steps = K - num_out
@@ -107,7 +124,12 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
     out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
     pruned = jnp.sum(w0) - jnp.sum(jnp.where(s.labels >= 0, w0, 0.0))
     return out, make_info(
-        gm, out, labels, overflow=overflow, pruned_mass=pruned + dropped, cost=ise(gm, out),
+        gm,
+        out,
+        labels,
+        overflow=overflow,
+        pruned_mass=pruned + dropped,
+        cost=ise(gm, out),
         aux={"actions": s.actions[:n_steps]},
     )
 
@@ -156,8 +178,14 @@ class Williams(Stateless):
     allow_prune: bool = static_field(True)
     capacity: int | None = static_field(None)
 
-    def __call__(self, gm: GaussianMixture, *, key: Array | None = None) -> tuple[GaussianMixture, ReductionInfo]:
+    def __call__(
+        self, gm: GaussianMixture, *, key: Array | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
         return williams(
-            gm, self.num_out, self.threshold, allow_prune=self.allow_prune,
-            capacity=self.capacity, key=key,
+            gm,
+            self.num_out,
+            self.threshold,
+            allow_prune=self.allow_prune,
+            capacity=self.capacity,
+            key=key,
         )

@@ -1,7 +1,6 @@
 """Two-sensor bearings-only tracking of a turning target, Liu et al. (AGSSCKF; seed 001 §4.2, eqs 48-51,
 Table 3, Fig. 3)."""
 
-
 from __future__ import annotations
 
 import jax
@@ -45,12 +44,14 @@ def _turn(x, omega, dt):
     c = jnp.where(small, 1.0, c)
     s_ = jnp.where(small, 0.0, s_)
     px, py, vx, vy = x[0], x[1], x[2], x[3]
-    return jnp.stack([
-        px + vx * sin_over + vy * one_minus_cos_over,
-        py - vx * one_minus_cos_over + vy * sin_over,
-        vx * c + vy * s_,
-        -vx * s_ + vy * c,
-    ])
+    return jnp.stack(
+        [
+            px + vx * sin_over + vy * one_minus_cos_over,
+            py - vx * one_minus_cos_over + vy * sin_over,
+            vx * c + vy * s_,
+            -vx * s_ + vy * c,
+        ]
+    )
 
 
 def bearings_only(

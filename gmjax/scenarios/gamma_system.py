@@ -1,6 +1,5 @@
 """The scalar system with Gamma process noise of Liu et al. (AGSSCKF; seed 001 §4.1, eqs 45-47, Table 2, Fig. 1)."""
 
-
 from __future__ import annotations
 
 import jax

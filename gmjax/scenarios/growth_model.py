@@ -2,7 +2,6 @@
 mixtures; seed 002 §V-B, eqs 76-77), and the GMM-PCRB settings the paper used for it.
 """
 
-
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -34,7 +33,12 @@ def _ungm_jacobian(x: Array, n: Array) -> Array:
 
 
 def ungm(
-    *, q: float = 10.0, r: float = 1.0, prior_mean: float = 0.0, prior_var: float = 1.0, dtype: DTypeLike | None = None
+    *,
+    q: float = 10.0,
+    r: float = 1.0,
+    prior_mean: float = 0.0,
+    prior_var: float = 1.0,
+    dtype: DTypeLike | None = None,
 ) -> PCRBModel:
     """The 1-D benchmark of seed 002 §V-B (eqs 79-82), with the paper's defaults.
 

@@ -4,7 +4,6 @@ Returns a :class:`gmjax.pcrb.PCRBModel` (additive Gaussian noises, the paper's t
 ``x_{n+1} = f(x_n, n) + w_n``, ``z_{n+1} = h(x_{n+1}, n+1) + v_{n+1}``).
 """
 
-
 from __future__ import annotations
 
 import jax.numpy as jnp
@@ -17,7 +16,14 @@ __all__ = ["linear_system"]
 
 
 def linear_system(
-    F: ArrayLike, H: ArrayLike, Q: ArrayLike, R: ArrayLike, m0: ArrayLike, P0: ArrayLike, *, dtype: DTypeLike | None = None
+    F: ArrayLike,
+    H: ArrayLike,
+    Q: ArrayLike,
+    R: ArrayLike,
+    m0: ArrayLike,
+    P0: ArrayLike,
+    *,
+    dtype: DTypeLike | None = None,
 ) -> PCRBModel:
     """The linear Gaussian model of seed 002 §V-A (eqs 74-75), time-invariant.
 

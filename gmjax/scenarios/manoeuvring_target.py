@@ -89,10 +89,16 @@ PAPER = {
 """The paper's average position RMSE (m) and run time (s) per reducer (§4.2.1, §4.2.2)."""
 
 _Q = np.diag([10.0, 4.0, 2.0])
-_PRIOR = ([0.6, 0.4], [[30.0, 20.0, 10.0], [20.0, 10.0, 5.0]],
-          [np.diag([300.0, 100.0, 50.0]), np.diag([350.0, 200.0, 40.0])])
-_NOISE = ([0.5, 0.5], [[10.0, 5.0, 2.0], [-10.0, 3.0, 1.0]],
-          [np.diag([100.0, 25.0, 4.0]), np.diag([100.0, 9.0, 1.0])])
+_PRIOR = (
+    [0.6, 0.4],
+    [[30.0, 20.0, 10.0], [20.0, 10.0, 5.0]],
+    [np.diag([300.0, 100.0, 50.0]), np.diag([350.0, 200.0, 40.0])],
+)
+_NOISE = (
+    [0.5, 0.5],
+    [[10.0, 5.0, 2.0], [-10.0, 3.0, 1.0]],
+    [np.diag([100.0, 25.0, 4.0]), np.diag([100.0, 9.0, 1.0])],
+)
 
 
 def cs_transition(alpha: float = 0.01, dt: float = 1.0) -> np.ndarray:
@@ -136,8 +142,9 @@ def _mixtures(dtype):
     return q, r, prior
 
 
-def imm_models(*, alpha: float = 0.01, omega: float = 0.02 * np.pi, dt: float = 1.0,
-               dtype: DTypeLike | None = None) -> tuple[StateSpaceModel, StateSpaceModel]:
+def imm_models(
+    *, alpha: float = 0.01, omega: float = 0.02 * np.pi, dt: float = 1.0, dtype: DTypeLike | None = None
+) -> tuple[StateSpaceModel, StateSpaceModel]:
     """The CS and CT models of the §4.2 IMM (GM prior, ``Q``, GM measurement noise, ``H = I_3``)."""
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
     q, r, prior = _mixtures(dtype)
@@ -146,8 +153,13 @@ def imm_models(*, alpha: float = 0.01, omega: float = 0.02 * np.pi, dt: float = 
     def model(Fm):
         Fj = jnp.asarray(Fm, dtype)
         return StateSpaceModel(
-            f=lambda x, t: Fj @ x, h=lambda x, t: x, process_noise=q, measurement_noise=r,
-            prior=prior, f_jacobian=lambda x, t: Fj, h_jacobian=lambda x, t: eye,
+            f=lambda x, t: Fj @ x,
+            h=lambda x, t: x,
+            process_noise=q,
+            measurement_noise=r,
+            prior=prior,
+            f_jacobian=lambda x, t: Fj,
+            h_jacobian=lambda x, t: eye,
         )
 
     return model(cs_transition(alpha, dt)), model(ct_transition(omega, dt))
@@ -184,10 +196,12 @@ def tracking(
         sample_initial = draw_prior
         what = f"uniform circular motion at {omega:.4g} rad/s (CT transition, no process noise)"
     else:
+
         def truth_f(x, t):
             a = x[2]
-            return jnp.stack([x[0] + x[1] * dt + a * dt**2 / 2, x[1] + a * dt,
-                              step_acceleration(t * dt).astype(x.dtype)])
+            return jnp.stack(
+                [x[0] + x[1] * dt + a * dt**2 / 2, x[1] + a * dt, step_acceleration(t * dt).astype(x.dtype)]
+            )
 
         def sample_initial(key):
             x0 = draw_prior(key)

@@ -2,7 +2,6 @@
 seed 002 §V-C, eqs 78-87, Tables I-III).
 """
 
-
 from __future__ import annotations
 
 from functools import partial
@@ -126,8 +125,11 @@ def geodetic_to_ecef(lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray
     N = WGS84_A / np.sqrt(1.0 - e2 * np.sin(lat) ** 2)
     h = alt_m / 1000.0
     return np.array(
-        [(N + h) * np.cos(lat) * np.cos(lon), (N + h) * np.cos(lat) * np.sin(lon),
-         (N * (1.0 - e2) + h) * np.sin(lat)]
+        [
+            (N + h) * np.cos(lat) * np.cos(lon),
+            (N + h) * np.cos(lat) * np.sin(lon),
+            (N * (1.0 - e2) + h) * np.sin(lat),
+        ]
     )
 
 
@@ -142,8 +144,14 @@ def _enu_matrix(lat_deg: float, lon_deg: float) -> np.ndarray:
     )
 
 
-def radar_measurement(x: Array, t: ArrayLike, theta0: float, *, range_rate: bool = False,
-                      site: tuple[float, float, float] = RADAR_SITE) -> Array:
+def radar_measurement(
+    x: Array,
+    t: ArrayLike,
+    theta0: float,
+    *,
+    range_rate: bool = False,
+    site: tuple[float, float, float] = RADAR_SITE,
+) -> Array:
     """Range (km), azimuth, elevation (rad) and optionally range rate (km/s) of an inertial state.
 
     The Earth (and the site) rotates about z with ``theta(t) = theta0 + omega_E t``; the
@@ -234,8 +242,14 @@ def _arc_elevations(x_t0, theta0, dt, max_steps):
     return els
 
 
-def satellite(*, range_rate: bool = False, dt: float = 5.0, max_steps: int = 400,
-              num_split_sigma: float = 0.25, dtype: DTypeLike | None = None) -> SatelliteScenario:
+def satellite(
+    *,
+    range_rate: bool = False,
+    dt: float = 5.0,
+    max_steps: int = 400,
+    num_split_sigma: float = 0.25,
+    dtype: DTypeLike | None = None,
+) -> SatelliteScenario:
     """Seed 002 §V-C: two-body orbit, ground radar, 49-component prior.
 
     Readings where the paper is silent: (i) the epoch (Earth angle) is not given, so ``theta0`` is
@@ -253,8 +267,9 @@ def satellite(*, range_rate: bool = False, dt: float = 5.0, max_steps: int = 400
     x0 = jnp.asarray(SATELLITE_STATE, dtype)
     x_t0 = jax.jit(kepler_propagate)(x0, -SATELLITE_EPOCH_S)
     theta0 = _rising_theta0(np.asarray(x_t0))
-    els = np.asarray(_arc_elevations(x_t0, jnp.asarray(theta0, dtype), jnp.asarray(dt, dtype),
-                                     int(max_steps)))
+    els = np.asarray(
+        _arc_elevations(x_t0, jnp.asarray(theta0, dtype), jnp.asarray(dt, dtype), int(max_steps))
+    )
     n_vis = int(np.argmax(els <= 0)) if np.any(els <= 0) else len(els)
     times = np.concatenate([[SATELLITE_EPOCH_S], dt * np.arange(n_vis + 1)])
     times_j = jnp.asarray(times, dtype)
@@ -272,6 +287,7 @@ def satellite(*, range_rate: bool = False, dt: float = 5.0, max_steps: int = 400
     model = PCRBModel(f=f, h=h, Q=Q, R=R, prior=from_gaussian(x0, Sigma0))
     # prior GMM in element space
     prior_gm = _element_split_prior(x0, Sigma0, uniform_library(num_split_sigma))
-    config = GMMPCRBConfig(num_components=prior_gm.capacity, mode="small", propagator="linear",
-                           threshold=0.01)
+    config = GMMPCRBConfig(
+        num_components=prior_gm.capacity, mode="small", propagator="linear", threshold=0.01
+    )
     return SatelliteScenario(model, times, theta0, prior_gm, config)

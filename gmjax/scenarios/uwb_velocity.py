@@ -114,8 +114,13 @@ def random_walk_velocity(
         return (pm[i] + ps[i] * jax.random.normal(k_n, (), dtype)) * gj
 
     model = StateSpaceModel(
-        f=lambda x, t: F @ x, h=lambda x, t: H @ x, process_noise=q, measurement_noise=r, prior=prior,
-        f_jacobian=lambda x, t: F, h_jacobian=lambda x, t: H,
+        f=lambda x, t: F @ x,
+        h=lambda x, t: H @ x,
+        process_noise=q,
+        measurement_noise=r,
+        prior=prior,
+        f_jacobian=lambda x, t: F,
+        h_jacobian=lambda x, t: H,
     )
     return Scenario(
         name=name,
@@ -139,8 +144,11 @@ def synthetic(model: int, c: float, **kwargs: Any) -> Scenario:
     base = SYNTHETIC_MODELS[model]
     gm = ScalarGM(base.weights, tuple(c * m for m in base.means), base.variances)
     return random_walk_velocity(
-        gm, gm, name=f"seed004_model{model}",
-        description=f"seed 004 Table I Model {model} with c = {c} (process and measurement noise)", **kwargs,
+        gm,
+        gm,
+        name=f"seed004_model{model}",
+        description=f"seed 004 Table I Model {model} with c = {c} (process and measurement noise)",
+        **kwargs,
     )
 
 
@@ -150,7 +158,9 @@ def uwb(axis: str, **kwargs: Any) -> Scenario:
         raise ValueError(f"axis: expected 'x' or 'y', got {axis!r}")
     noises = UWB_NOISES[axis]
     return random_walk_velocity(
-        noises["process"], noises["measurement"], name=f"seed004_uwb_{axis}",
+        noises["process"],
+        noises["measurement"],
+        name=f"seed004_uwb_{axis}",
         description=f"seed 004 Table II UWB noise models, {axis} axis (simulated from the fitted mixtures)",
         **kwargs,
     )
@@ -195,7 +205,8 @@ def synthetic_noise(model: int, c: ArrayLike) -> ScalarGM:
     c = jnp.asarray(c)
     dtype = c.dtype if jnp.issubdtype(c.dtype, jnp.floating) else jnp.zeros(()).dtype
     return ScalarGM(
-        jnp.asarray(base.weights, dtype), c.astype(dtype) * jnp.asarray(base.means, dtype),
+        jnp.asarray(base.weights, dtype),
+        c.astype(dtype) * jnp.asarray(base.means, dtype),
         jnp.asarray(base.variances, dtype),
     )
 
@@ -225,7 +236,9 @@ def rwv_model(
     G = jnp.outer(g, g)
     eye = jnp.eye(2, dtype=dtype)
     q = GaussianMixture.from_arrays(
-        p.weights / jnp.sum(p.weights), p.means[:, None] * g, p.variances[:, None, None] * G + jitter * eye,
+        p.weights / jnp.sum(p.weights),
+        p.means[:, None] * g,
+        p.variances[:, None, None] * G + jitter * eye,
         p.weights > 0,
     )
     rm = GaussianMixture.from_arrays(
@@ -237,8 +250,13 @@ def rwv_model(
     F = jnp.asarray([[1.0, dt], [0.0, 1.0]], dtype)
     H = jnp.asarray([[1.0, 0.0]], dtype)
     return StateSpaceModel(
-        f=lambda x, t: F @ x, h=lambda x, t: H @ x, process_noise=q, measurement_noise=rm, prior=prior,
-        f_jacobian=lambda x, t: F, h_jacobian=lambda x, t: H,
+        f=lambda x, t: F @ x,
+        h=lambda x, t: H @ x,
+        process_noise=q,
+        measurement_noise=rm,
+        prior=prior,
+        f_jacobian=lambda x, t: F,
+        h_jacobian=lambda x, t: H,
     )
 
 
@@ -288,15 +306,20 @@ def _scalar_parts(gm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if gm.dim != 1:
             raise ValueError(f"gm: expected a 1-D mixture, got dimension {gm.dim}")
         mask = np.asarray(gm.mask)
-        w, m, v = (np.asarray(gm.weights, float)[mask], np.asarray(gm.means, float)[mask, 0],
-                   np.asarray(gm.covs, float)[mask, 0, 0])
+        w, m, v = (
+            np.asarray(gm.weights, float)[mask],
+            np.asarray(gm.means, float)[mask, 0],
+            np.asarray(gm.covs, float)[mask, 0, 0],
+        )
     elif isinstance(gm, ScalarGM):
         w, m, v = (np.asarray(a, float).reshape(-1) for a in gm)
     else:
         raise ValueError(f"gm: expected a ScalarGM or a 1-D GaussianMixture, got {type(gm).__name__}")
     if not (w.shape == m.shape == v.shape) or w.size == 0:
-        raise ValueError(f"gm: weights, means, variances must have one equal, non-zero length; got "
-                         f"{w.shape}, {m.shape}, {v.shape}")
+        raise ValueError(
+            f"gm: weights, means, variances must have one equal, non-zero length; got "
+            f"{w.shape}, {m.shape}, {v.shape}"
+        )
     if not (np.all(np.isfinite(w)) and np.all(np.isfinite(m)) and np.all(np.isfinite(v))):
         raise ValueError("gm: contains NaN or inf")
     if np.any(w < 0) or w.sum() <= 0:
@@ -392,10 +415,12 @@ def kl_curve(model: int, cs: ArrayLike) -> np.ndarray:
     if model not in SYNTHETIC_MODELS:
         raise ValueError(f"model: expected 1, 2 or 3, got {model!r}")
     base = SYNTHETIC_MODELS[model]
-    return np.array([
-        kl_to_moment_matched(ScalarGM(base.weights, tuple(c * mm for mm in base.means), base.variances))
-        for c in np.atleast_1d(np.asarray(cs, float))
-    ])
+    return np.array(
+        [
+            kl_to_moment_matched(ScalarGM(base.weights, tuple(c * mm for mm in base.means), base.variances))
+            for c in np.atleast_1d(np.asarray(cs, float))
+        ]
+    )
 
 
 def c_for_kl(model: int, kl: float, *, c_max: float = 100.0, xtol: float = 1e-10) -> float:
