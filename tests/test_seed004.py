@@ -143,3 +143,35 @@ def test_synthetic_noise_traces_in_c():
     with pytest.raises(ValueError, match="model"):
         uwb_velocity.synthetic_noise(0, 1.0)
     np.testing.assert_allclose(np.asarray(uwb_velocity.noise_gain())[:, 0], [uwb_velocity.DT, 1.0])
+
+
+def test_benchmark_rmse_is_eq23_per_run_averaged_over_runs_with_pooled_beside_it():
+    """bench_seed004 reports eq 23 per run, averaged (Figs 2-4); checked against a plain per-run loop."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from bench_seed004 import _paired_vs, _scores
+
+    rng = np.random.default_rng(0)
+    # runs with very different error scales, so the two averages differ clearly
+    errors = rng.normal(size=(2, 6, 9, 1)) * rng.uniform(0.1, 5.0, size=(2, 6, 1, 1))
+    got = _scores(errors)
+    for p in range(2):
+        per_run = [np.sqrt(sum(float(e) ** 2 for e in errors[p, n, :, 0]) / 9) for n in range(6)]
+        assert got["rmse"][p] == pytest.approx(np.mean(per_run), rel=1e-12)
+        assert got["rmse_se"][p] == pytest.approx(np.std(per_run, ddof=1) / np.sqrt(6), rel=1e-12)
+        pooled = np.sqrt(np.mean(errors[p, ..., 0] ** 2))
+        assert got["rmse_pooled"][p] == pytest.approx(pooled, rel=1e-12)
+        assert got["rmse"][p] < got["rmse_pooled"][p]  # Jensen: mean of roots <= root of mean
+        cep_run = [np.median(np.abs(errors[p, n, :, 0])) for n in range(6)]
+        assert got["cep"][p] == pytest.approx(np.mean(cep_run), rel=1e-12)
+        assert got["cep_pooled"][p] == pytest.approx(np.median(np.abs(errors[p])), rel=1e-12)
+    rmse_run = {
+        m: rng.uniform(1, 2, size=(2, 6))
+        for m in ("gsf-merge", "red-gsfm", "red-gsfr", "red-pkg", "red-ssg", "red-dkg")
+    }
+    paired = _paired_vs(rmse_run)
+    d = rmse_run["red-ssg"] - rmse_run["gsf-merge"]
+    np.testing.assert_allclose(paired["red-ssg"]["diff"], d.mean(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(paired["red-ssg"]["se"], d.std(axis=1, ddof=1) / np.sqrt(6), rtol=1e-12)
