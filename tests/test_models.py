@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gmjax import mixture as gmm
 from gmjax.models import noise, simulate
@@ -77,7 +78,7 @@ def _moments_within_se(draws, mean, cov, n_se=5):
 
 
 def test_seed001_gamma_system():
-    sc = gamma_system()
+    sc = gamma_system(gamma_scale=2.0)  # the scale-2 variant (MATLAB's gamrnd(3, 2))
     n = 100_000
     draws = np.asarray(
         jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(5), n))
@@ -88,6 +89,46 @@ def test_seed001_gamma_system():
     np.testing.assert_allclose(sc.model.f(jnp.array([2.0]), 1), [1.0])  # sin(0) at the first step
     xs, zs, _ = simulate(sc, jax.random.key(6))
     assert xs.shape == (61, 1) and np.all(np.isfinite(zs))
+
+
+def test_seed001_gamma_default_reading_matches_the_moments_of_eq47():
+    """Default Ga(3, 2) = shape 3, scale sqrt(2): its moments are eq 47's (the paper's fit of it)."""
+    from gmjax.scenarios.gamma_system import GAMMA_PROCESS_NOISE, eq47_moments
+
+    w, m, v = (np.asarray(a) for a in GAMMA_PROCESS_NOISE)
+    mean47 = float(np.sum(w * m))  # from the formula, not from the module
+    var47 = float(np.sum(w * (v + (m - mean47) ** 2)))
+    assert (mean47, var47) == pytest.approx(eq47_moments(), rel=1e-12)
+    assert mean47 == pytest.approx(4.246, abs=5e-4) and var47 == pytest.approx(6.008, abs=5e-4)
+    sc = gamma_system()
+    draws = np.asarray(
+        jax.vmap(lambda k: sc.sample_process_noise(k, 1))(jax.random.split(jax.random.key(5), 100_000))
+    )
+    _moments_within_se(draws, np.array([3 * np.sqrt(2.0)]), np.array([[6.0]]))  # Ga(shape 3, scale sqrt 2)
+    # the reading agrees with eq 47 to three digits; scale 2 misses by 40 % (mean) and 100 % (variance)
+    assert abs(3 * np.sqrt(2.0) - mean47) / mean47 < 1e-3 and abs(6.0 - var47) / var47 < 2e-3
+
+
+def test_seed001_gamma_initial_update_measures_x0_before_any_transition():
+    """initial_update: step 1 is k = 0 (identity, no noise), z_0 = 0.2 x_0^2; later steps are eq 44 at k = t - 1."""
+    sc = gamma_system(n_steps=4, initial_update=True)
+    xs, zs, ts = simulate(sc, jax.random.key(8))
+    assert xs.shape == (6, 1) and zs.shape == (5, 1)
+    np.testing.assert_array_equal(xs[1], xs[0])  # x at k = 0 is the initial state itself
+    np.testing.assert_allclose(zs[:, 0], 0.2 * xs[1:, 0] ** 2, atol=0.02)  # v ~ N(0, 1e-5)
+    np.testing.assert_allclose(sc.model.f(jnp.array([2.0]), 1), [2.0])
+    np.testing.assert_allclose(sc.model.f(jnp.array([2.0]), 2), [1.0])  # k = 1: sin(0)
+    np.testing.assert_allclose(sc.model.h(jnp.array([2.0]), 31), [0.8])  # k = 30: still quadratic
+    np.testing.assert_allclose(sc.model.h(jnp.array([2.0]), 32), [-1.0])
+    from gmjax.filters import StepInputs
+
+    q0 = sc.model.noise_at(sc.model.process_noise, StepInputs(t=jnp.asarray(1)))
+    q1 = sc.model.noise_at(sc.model.process_noise, StepInputs(t=jnp.asarray(2)))
+    assert int(q0.mask.sum()) == 1 and float(q0.weights.sum()) == 1.0 and float(q0.covs[0, 0, 0]) < 1e-11
+    np.testing.assert_array_equal(q1.means, sc.model.process_noise.means)
+    # differences after k = 0 are eq 44's
+    w = xs[2:, 0] - 0.5 * xs[1:-1, 0] - np.sin(0.04 * np.pi * np.arange(0, 4))
+    assert np.all(w > 0)  # Gamma draws are positive
 
 
 def test_seed004_noises_match_the_mixtures_the_filters_assume():
