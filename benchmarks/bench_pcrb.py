@@ -21,7 +21,6 @@ GMM 34.091 s / 33.977 s, small MC 35.039 s / 33.307 s).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -33,7 +32,7 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _common import markdown_table, time_jax, time_python, write_results  # noqa: E402
+from _common import RESULTS_DIR, markdown_table, time_jax, time_python, write_results  # noqa: E402
 from reference.pcrb_ref import (  # noqa: E402
     gh_library,
     pcrb_gmm_1d_numpy,
@@ -45,7 +44,6 @@ from gmjax.pcrb import build_pcrb_gmm, pcrb_mc  # noqa: E402
 from gmjax.quadrature import gauss_hermite, smolyak  # noqa: E402
 from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup  # noqa: E402
 from gmjax.scenarios.satellite_pass import satellite  # noqa: E402
-from gmjax.split import gauss_hermite_library  # noqa: E402
 
 PAPER = {
     "gmm_k64_s": 1400.712,
@@ -58,6 +56,45 @@ PAPER = {
     "sat_mc_small_rae_s": 35.039,
     "sat_mc_small_raer_s": 33.307,
 }
+
+
+def mc_seconds_per_sample(run_mc, n_pilot: int) -> float:
+    """Wall seconds per Monte Carlo sample: a pilot of ``n_pilot`` samples, timed after its compile."""
+    jax.block_until_ready(run_mc(n_pilot, 101))  # compile
+    t0 = time.perf_counter()
+    jax.block_until_ready(run_mc(n_pilot, 102))
+    return (time.perf_counter() - t0) / n_pilot
+
+
+def equal_time_plot(data: dict, path: Path) -> Path | None:
+    """Relative error per step: the GMM method vs Monte Carlo with the samples that take its run time."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # pragma: no cover
+        return None
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.4))
+    for (label, (e_gmm, e_mc, n_eq)), c in zip(data["ungm"].items(), ("tab:blue", "tab:orange")):
+        k = np.arange(1, len(e_gmm) + 1)
+        axes[0].plot(k, e_gmm, color=c, label=label)
+        axes[0].plot(k, e_mc, color=c, ls="--", label=f"MC {n_eq:.1e} (same time)")
+    axes[0].set(xlabel="n", ylabel="relative error of J_n^-1", yscale="log", title="1-D benchmark (K = 64)")
+    axes[0].legend(fontsize=6)
+    for tag, c in (("rae", "tab:green"), ("raer", "tab:red")):
+        if tag in data["sat"]:
+            e_gmm, e_mc, n_eq = data["sat"][tag]
+            k = np.arange(1, len(e_gmm) + 1)
+            axes[1].plot(k, e_gmm, color=c, label=f"GMM-49 ({tag.upper()})")
+            axes[1].plot(k, e_mc, color=c, ls="--", label=f"MC {n_eq} ({tag.upper()}, same time)")
+    axes[1].set(xlabel="measurement", ylabel="relative error of PPCRB", yscale="log", title="satellite")
+    axes[1].legend(fontsize=6)
+    fig.suptitle("PCRB accuracy at equal wall time (reference: large Monte Carlo)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
 
 
 def _pos_vel(bound):
@@ -124,6 +161,35 @@ def satellite_part(args, key):
         rows.append(
             [("R, A, E, Rdot" if rr else "R, A, E"), f"MC reference {n_ref:.0e}", "", "", "", t_ref, ""]
         )
+        rate_s = mc_seconds_per_sample(
+            lambda n, seed: (
+                pcrb_mc(sc.model, T, n, key=jax.random.fold_in(key, seed), chunk_size=n, progress=False).bound
+            ),
+            2_000 if not args.quick else 200,
+        )
+        n_eq = max(int(timing["run_median_s"] / rate_s), 10)
+
+        def mc_eq(seed, n=n_eq):
+            return pcrb_mc(
+                sc.model, T, n, key=jax.random.fold_in(key, seed), chunk_size=n, progress=False
+            ).bound
+
+        jax.block_until_ready(mc_eq(91))  # compile for this sample count
+        t0 = time.perf_counter()
+        pe, ve = _pos_vel(jax.block_until_ready(mc_eq(13)))
+        t_eq = time.perf_counter() - t0
+        ep_g, ep_m = _rel(pg[1:], pr[1:]), _rel(pe[1:], pr[1:])
+        out[f"sat_{tag}_equal_time"] = {
+            "gmm_run_s": timing["run_median_s"],
+            "gmm_max_rel_err_ppcrb": float(ep_g.max()),
+            "gmm_max_rel_err_vpcrb": float(_rel(vg[1:], vr[1:]).max()),
+            "mc_samples": n_eq,
+            "mc_run_s": t_eq,
+            "mc_max_rel_err_ppcrb": float(ep_m.max()),
+            "mc_max_rel_err_vpcrb": float(_rel(ve[1:], vr[1:]).max()),
+            "reference_samples": n_ref,
+        }
+        out[f"sat_{tag}_equal_time_curves"] = {"gmm_ppcrb_rel": ep_g, "mc_ppcrb_rel": ep_m}
         out[f"sat_{tag}_summary"] = {
             "steps": T,
             "arc_s": float(sc.times[-1]),
@@ -153,6 +219,34 @@ def satellite_part(args, key):
                 "paper run s (MATLAB)",
             ],
             rows,
+        ),
+        "",
+        "Accuracy at equal wall time: Monte Carlo with the number of samples that takes the GMM-49 run "
+        f"time (measured rate), against the {n_ref:.0e}-sample reference (whose own sampling error bounds "
+        "what can be resolved):",
+        "",
+        markdown_table(
+            [
+                "measurements",
+                "GMM-49 run s",
+                "GMM max rel. err. PPCRB",
+                "MC samples",
+                "MC run s",
+                "MC max rel. err. PPCRB",
+                "more accurate",
+            ],
+            [
+                [
+                    "R, A, E, Rdot" if tag == "raer" else "R, A, E",
+                    e["gmm_run_s"],
+                    e["gmm_max_rel_err_ppcrb"],
+                    e["mc_samples"],
+                    e["mc_run_s"],
+                    e["mc_max_rel_err_ppcrb"],
+                    "MC" if e["mc_max_rel_err_ppcrb"] < e["gmm_max_rel_err_ppcrb"] else "GMM",
+                ]
+                for tag, e in ((t, out[f"sat_{t}_equal_time"]) for t in ("rae", "raer"))
+            ],
         ),
     ]
     return out, "\n".join(md)
@@ -237,7 +331,7 @@ def main(argv=None):
     rows_err = []
     rows_time = []
     for K in (64, 32):
-        setup = ungm_gmm_setup(model, K)
+        setup = ungm_gmm_setup(model, K, state_components=16)  # the paper's state library M = 16
         run = build_pcrb_gmm(model, rule, T, setup.config)
         timing = time_jax(lambda: run(setup.prior_gm).bound, repeats=1 if args.quick else 3)
         res = run(setup.prior_gm)
@@ -269,7 +363,7 @@ def main(argv=None):
         rel_rmse = _rel(np.sqrt(b[1:]), np.sqrt(ref[1:]))
         rows_err.append(
             [
-                f"GMM K = {K}",
+                f"GMM K = {K}, M = 16 (paper)",
                 float(rel_rmse.max()),
                 PAPER[f"max_rel_err_k{K}"],
                 float(rel.max()),
@@ -279,7 +373,7 @@ def main(argv=None):
         )
         rows_time.append(
             [
-                f"GMM K = {K} (whole run)",
+                f"GMM K = {K}, M = 16 (paper; whole run)",
                 timing["compile_s"],
                 timing["run_median_s"],
                 t_np,
@@ -314,24 +408,73 @@ def main(argv=None):
     )
     rows_time.append([f"MC reference {n_ref:.0e} samples", "", t_ref, "", "", "", "", ""])
 
-    # --- a finer state library (not the paper's setting) ---------------------------------------
+    # --- the default: K = 64 with the state library M = 32 (see ungm_gmm_setup) ----------------
     setup = ungm_gmm_setup(model, 64)
-    cfg32 = dataclasses.replace(setup.config, state_library=gauss_hermite_library(32, 1 / 40))
-    run32 = build_pcrb_gmm(model, rule, T, cfg32)
-    t32 = time_jax(lambda: run32(setup.prior_gm).bound, repeats=1)
+    assert len(setup.state_library.weights) == 32
+    run32 = build_pcrb_gmm(model, rule, T, setup.config)
+    t32 = time_jax(lambda: run32(setup.prior_gm).bound, repeats=1 if args.quick else 3)
     b32 = np.asarray(run32(setup.prior_gm).bound[:, 0, 0])
     rel32 = _rel(b32[1:], ref[1:])
-    rows_err.append(
+    rows_err.insert(
+        0,
         [
-            "GMM K = 64, state library M = 32",
+            "GMM K = 64, M = 32 (default)",
             float(_rel(np.sqrt(b32[1:]), np.sqrt(ref[1:])).max()),
-            "(not in paper)",
+            "0.01 (K = 64)",
             float(rel32.max()),
             int(rel32.argmax()) + 1,
             float(rel32.mean()),
-        ]
+        ],
     )
-    rows_time.append(["GMM K = 64, M = 32", t32["compile_s"], t32["run_median_s"], "", "", "", "", ""])
+    rows_time.insert(
+        0, ["GMM K = 64, M = 32 (default)", t32["compile_s"], t32["run_median_s"], "", "", "", "", ""]
+    )
+
+    # --- accuracy at equal wall time: Monte Carlo with the samples that take the GMM's run time --
+    eq_rows, eq_data, eq_curves = [], {}, {}
+    rate = mc_seconds_per_sample(
+        lambda n, seed: (
+            pcrb_mc(
+                model, T, n, key=jax.random.fold_in(key, seed), chunk_size=min(n, 250_000), progress=False
+            ).bound
+        ),
+        200_000 if not args.quick else 20_000,
+    )
+    for label, t_gmm, b_gmm in (
+        ("GMM K = 64, M = 32 (default)", t32["run_median_s"], b32),
+        ("GMM K = 64, M = 16 (paper)", results[64][2]["run_median_s"], results[64][0]),
+    ):
+        n_eq = max(int(t_gmm / rate), 100)
+
+        def mc_at(seed, n=n_eq):
+            return pcrb_mc(
+                model, T, n, key=jax.random.fold_in(key, seed), chunk_size=min(n, 250_000), progress=False
+            ).bound
+
+        jax.block_until_ready(mc_at(90 + len(eq_rows)))  # compile for this sample count
+        t0 = time.perf_counter()
+        b_eq = np.asarray(jax.block_until_ready(mc_at(3 + len(eq_rows)))[:, 0, 0])
+        t_eq = time.perf_counter() - t0
+        e_gmm, e_mc = _rel(b_gmm[1:], ref[1:]), _rel(b_eq[1:], ref[1:])
+        eq_rows.append(
+            [
+                label,
+                t_gmm,
+                float(e_gmm.max()),
+                f"MC {n_eq:.2e}",
+                t_eq,
+                float(e_mc.max()),
+                "MC" if e_mc.max() < e_gmm.max() else "GMM",
+            ]
+        )
+        eq_data[label] = {
+            "gmm_run_s": t_gmm,
+            "gmm_max_rel_err": float(e_gmm.max()),
+            "mc_samples": n_eq,
+            "mc_run_s": t_eq,
+            "mc_max_rel_err": float(e_mc.max()),
+        }
+        eq_curves[label] = (e_gmm, e_mc, n_eq)
 
     mc_rel_se = float(np.max(ref_se[1:] / ref[1:]))
     b64, res64, _ = results[64]
@@ -350,6 +493,9 @@ def main(argv=None):
         "ungm_mc_reference_stderr": ref_se,
         "ungm_mc_small": mc_small,
         "ungm_gmm_k64_state_m32": b32,
+        "default": "K = 64 with state library M = 32 (ungm_gmm_setup's default); ungm_gmm_k64 / _k32 are M = 16",
+        "equal_time_ungm": eq_data,
+        "mc_seconds_per_sample_ungm": rate,
         "ungm_metric_s_case_k64": np.asarray(res64.info.metric),
         "ungm_metric_l_case_k64": np.asarray(res64.info.metric_refined),
         "errors": [
@@ -378,15 +524,26 @@ def main(argv=None):
         "paper": PAPER,
     }
     sat_md = "Satellite tracking (§V-C): skipped (--skip-satellite)."
+    plot_data = {"ungm": eq_curves, "sat": {}}
     if not args.skip_satellite:
         sat, sat_md = satellite_part(args, key)
+        for tag in ("rae", "raer"):
+            c = sat.pop(f"sat_{tag}_equal_time_curves")
+            plot_data["sat"][tag] = (
+                c["gmm_ppcrb_rel"],
+                c["mc_ppcrb_rel"],
+                sat[f"sat_{tag}_equal_time"]["mc_samples"],
+            )
         data.update(sat)
+    png = equal_time_plot(plot_data, RESULTS_DIR / f"pcrb_equal_time{'_quick' if args.quick else ''}.png")
     md = [
         "# PCRB of the 1-D benchmark (seed 002 §V-B, Figs 3-5)",
         "",
         f"Reference: Monte Carlo with {n_ref:.0e} trajectories (max relative standard error of the "
         f"bound {mc_rel_se:.2e}). Steps 1..{T}; time convention of eq 79: cos(1.2 n), n the index "
-        "of x_n.",
+        "of x_n. Timings on a shared, loaded 2-core CPU machine (another benchmark used about one core "
+        "during this run), so the absolute seconds are high; the equal-time comparison measures both methods "
+        "under the same load.",
         "",
         "## Relative error against the reference",
         "",
@@ -401,6 +558,13 @@ def main(argv=None):
             ],
             rows_err,
         ),
+        "",
+        "Default configuration: K = 64 with the state library M = 32 at σ = 1/40 "
+        "(`ungm_gmm_setup`'s default), chosen because the paper judges a splitting library by its L2 "
+        "distance to N(0, 1) (eq 13) and its printed M = 16 is far from it at σ = 1/40 (E = 2.19; M = 32: "
+        "1.48); M = 32 is the first doubling of the paper's M, not a search. The paper-literal M = 16 rows "
+        "are kept. (Checked and unchanged: 80 instead of 40 Gauss-Hermite nodes per component, and 1000 "
+        "instead of 100 k-means iterations, move the K = 64, M = 16 bound by < 3e-5 relative.)",
         "",
         "Reading of Figs 4-5 (documented, not tuned): the paper plots the PCRB in RMSE units -- "
         "Fig 3 shows the 'minimum RMSE' sqrt(PCRB), and §V-C defines its PCRBs (PPCRB, VPCRB) and "
@@ -428,6 +592,33 @@ def main(argv=None):
         "rounding differences eventually send a component to another cluster and the two runs "
         "drift apart by about the method's own error after a few tens of steps.",
         "",
+        "## Accuracy at equal wall time (1-D benchmark)",
+        "",
+        "Monte Carlo PCRB (`gmjax.pcrb.pcrb_mc`, batched) with the number of samples that takes the GMM "
+        f"method's run time (rate measured on a {200_000 if not args.quick else 20_000}-sample pilot, "
+        f"{rate * 1e6:.3g} µs per sample), against the reference; max relative error of J_n^{{-1}} over n = 1..{T}. "
+        "The paper compares its GMM with a 1.2e4-sample MC of about the GMM's run time *excluding* k-means "
+        "(4.157 s) and finds the GMM more accurate. Here, at equal total time (k-means included), the "
+        + " and ".join(
+            f"{'Monte Carlo' if r[-1] == 'MC' else 'GMM'} is more accurate against {r[0]}" for r in eq_rows
+        )
+        + f" (the reference's own max relative standard error is {mc_rel_se:.1e}, so errors below about "
+        f"{2 * mc_rel_se:.1e} are not resolved).",
+        "",
+        markdown_table(
+            [
+                "GMM configuration",
+                "GMM run s",
+                "GMM max rel. err.",
+                "MC samples (same time)",
+                "MC run s",
+                "MC max rel. err.",
+                "more accurate",
+            ],
+            eq_rows,
+        ),
+        "",
+        *([f"![PCRB accuracy at equal time]({png.name})", ""] if png else []),
         sat_md,
     ]
     print("\n".join(md))

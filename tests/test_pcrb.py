@@ -240,7 +240,7 @@ def test_auto_switch_and_both_algorithms_match_numpy_references():
     Algorithm 1; an intermediate threshold switches per step on the metric of p(x_n)."""
     model = ungm()
     K, T = 16, 6
-    setup = ungm_gmm_setup(model, K, mode="auto", prior_splits=2)
+    setup = ungm_gmm_setup(model, K, mode="auto", prior_splits=2, state_components=16)
     run = build_pcrb_gmm(model, gauss_hermite(1, 40), T, setup.config)
     lo = run(setup.prior_gm, None, dataclasses.replace(setup.config, threshold=0.0))
     hi = run(setup.prior_gm, None, dataclasses.replace(setup.config, threshold=1e30))
@@ -367,10 +367,50 @@ def test_ungm_k64_against_monte_carlo():
     model = ungm()
     T = 100
     mc = pcrb_mc(model, T, 1_000_000, key=jax.random.PRNGKey(7), chunk_size=250_000, progress=False)
-    setup = ungm_gmm_setup(model, 64)
+    setup = ungm_gmm_setup(model, 64, state_components=16)  # the paper's M = 16
     res = pcrb_gmm(model, setup.prior_gm, gauss_hermite(1, 40), T, config=setup.config)
     b, bm = np.asarray(res.bound[1:, 0, 0]), np.asarray(mc.bound[1:, 0, 0])
     se = np.asarray(mc.info.bound_stderr[1:, 0, 0])
     rel_rmse = np.abs(np.sqrt(b) - np.sqrt(bm)) / np.sqrt(bm)
     assert (se / bm).max() < 0.005
     assert rel_rmse.max() <= 0.01 + 2 * (se / bm).max()
+
+
+def test_ungm_default_state_library_is_the_closer_l2_fit_of_eq_13():
+    """The default state library (M = 32, sigma = 1/40) is closer to N(0, 1) in eq 13's L2 distance than
+    the paper's M = 16, and the setup uses exactly that library."""
+    from gmjax.split import library_l2_error
+
+    default, paper = (
+        ungm_gmm_setup(ungm(), 4, prior_splits=1),
+        ungm_gmm_setup(ungm(), 4, prior_splits=1, state_components=16),
+    )
+    assert len(default.state_library.weights) == 32 and len(paper.state_library.weights) == 16
+    np.testing.assert_allclose(default.state_library.weights, gauss_hermite_library(32, 1 / 40).weights)
+    e32, e16 = library_l2_error(default.state_library), library_l2_error(paper.state_library)
+
+    # the L2 distance from the closed form c - 2 b.w + w.G.w (eq 13), computed here independently
+    def l2(lib):
+        w, m, s = np.asarray(lib.weights), np.asarray(lib.means), float(lib.sigma)
+        G = np.exp(-0.25 * (m[:, None] - m[None]) ** 2 / s**2) / np.sqrt(4 * np.pi * s**2)
+        b = np.exp(-0.5 * m**2 / (1 + s**2)) / np.sqrt(2 * np.pi * (1 + s**2))
+        return 1 / (2 * np.sqrt(np.pi)) - 2 * b @ w + w @ G @ w
+
+    assert e32 == pytest.approx(l2(default.state_library), rel=1e-6)
+    assert e16 == pytest.approx(l2(paper.state_library), rel=1e-6)
+    assert e32 < 0.7 * e16
+
+
+@pytest.mark.slow
+def test_ungm_k64_default_bound_itself_within_one_percent():
+    """The default K = 64 setting (state library M = 32) on J_n^{-1} itself against a 10^6-sample MC:
+    within 1 % plus twice the MC's relative standard error (0.93 % against 10^7 samples in the benchmark)."""
+    model = ungm()
+    T = 100
+    mc = pcrb_mc(model, T, 1_000_000, key=jax.random.PRNGKey(7), chunk_size=250_000, progress=False)
+    setup = ungm_gmm_setup(model, 64)
+    res = pcrb_gmm(model, setup.prior_gm, gauss_hermite(1, 40), T, config=setup.config)
+    b, bm = np.asarray(res.bound[1:, 0, 0]), np.asarray(mc.bound[1:, 0, 0])
+    se = np.asarray(mc.info.bound_stderr[1:, 0, 0])
+    assert (se / bm).max() < 0.005
+    assert (np.abs(b - bm) / bm).max() <= 0.01 + 2 * (se / bm).max()
