@@ -241,7 +241,8 @@ def main(argv=None):
             "position RMSE with its Monte Carlo standard error; AEISE is the mean EISE that PCM's search "
             "minimised (the paper does not define it for NL/R-GSF); mean ISE is between each step's updated "
             "mixture and its reduction; ms / run excludes compilation. The paper's CPU seconds are MATLAB "
-            "totals for all its runs.",
+            "totals for all its runs. Timings were taken on a shared, loaded 2-core machine (other benchmarks "
+            "and tests running; about one core was taken by a background benchmark).",
             "",
             f"Notes: {study.notes}",
             "",

@@ -146,7 +146,9 @@ def _np_gamma_filter(cfg=agsf_np.Config()):  # noqa: B008 (never mutated)
 
 @pytest.fixture(scope="module")
 def gamma_data():
-    sc = gamma_system(n_steps=T_SHORT)
+    sc = gamma_system(
+        n_steps=T_SHORT, gamma_scale=2.0
+    )  # the data these tests were written on (scale-2 reading)
     keys = jax.random.split(jax.random.key(3), 3)
     sims = [simulate(sc, k) for k in keys]
     zs = jnp.stack([s[1] for s in sims])
@@ -284,7 +286,7 @@ def test_padded_prior_slots_change_nothing(gamma_data):
 
 
 def test_float32_runs(gamma_data, runner):
-    sc32 = gamma_system(n_steps=T_SHORT, dtype=jnp.float32)
+    sc32 = gamma_system(n_steps=T_SHORT, gamma_scale=2.0, dtype=jnp.float32)
     _, xs, zs, ts = gamma_data
     f = build_agsf(sc32.model)
     _, infos = jax.jit(lambda z: run(f, z, ts))(zs[0].astype(jnp.float32))
@@ -298,7 +300,7 @@ def test_float32_runs(gamma_data, runner):
 
 
 def test_bad_input_raises_clear_errors():
-    sc = gamma_system(n_steps=5)
+    sc = gamma_system(n_steps=5, gamma_scale=2.0)
     m = sc.model
     two_r = GaussianMixture.create([0.5, 0.5], [0.0, 1.0], [1.0, 2.0])
     with pytest.raises(ValueError, match="measurement_noise"):
