@@ -20,6 +20,10 @@ bandwidth).
 Noises: the process noise is a :class:`GaussianMixture` (read from ``params`` at every call) or any
 sampler ``(key, (N,)) -> (N, d)`` (e.g. a scenario's true-noise simulator, static code); the
 measurement noise is a :class:`GaussianMixture` (in ``params``) or a log-density ``w (m,) -> ()``.
+
+Angles (``model.angle_dims``): the residual ``z - h(x_i)`` is wrapped into ``[-pi, pi)``; with a GM
+measurement noise each component's residual ``z - h(x_i) - r_j`` is wrapped again, so component
+means that are angles act on the circle (a custom log-density receives the wrapped ``z - h(x_i)``).
 """
 
 from __future__ import annotations
@@ -203,14 +207,20 @@ def _gm_sampler(gm: GaussianMixture) -> Callable[[PRNGKey, tuple], Array]:
     return sample
 
 
-def _gm_logpdf(gm: GaussianMixture) -> Callable[[Array], Array]:
-    """Log-density of a (normalised) GM with factors precomputed; ``w (m,) -> ()``."""
+def _gm_logpdf(gm: GaussianMixture, angle_dims: tuple[int, ...] = ()) -> Callable[[Array], Array]:
+    """Log-density of a (normalised) GM with factors precomputed; ``w (m,) -> ()``.
+
+    ``angle_dims``: components that are angles. Each component's residual ``w - r_j`` is wrapped
+    into ``[-pi, pi)`` before its Gaussian is evaluated (as the Gaussian-sum filter's components
+    do), so a component whose mean is an angle (e.g. a front/back ambiguity at ``pi``) sees its
+    residual on the circle.
+    """
     gm = gmm.normalize(gm)
     factors = jax.vmap(lambda P: safe_chol(P).factor)(gm.covs)
     logw = gmm.log_weights(gm)
 
     def one(w, mean, L):
-        return loglik_from_chol(w - mean, L)
+        return loglik_from_chol(wrap_angles(w - mean, angle_dims), L)
 
     def logpdf(w):
         return logsumexp(logw + jax.vmap(one, (None, 0, 0))(w, gm.means, factors))
@@ -240,11 +250,14 @@ def _process_sampler(noise: Any) -> _ProcessSampler:
     )
 
 
-def _measurement_logpdf(noise: Any) -> Callable[[GaussianMixture], Callable[[Array], Array]]:
-    """``params_noise -> (w (m,) -> ())``: the GM in ``params`` (``None`` or a GM override) or a
-    static log-density (``params_noise`` ignored)."""
+def _measurement_logpdf(
+    noise: Any, angle_dims: tuple[int, ...] = ()
+) -> Callable[[GaussianMixture], Callable[[Array], Array]]:
+    """``params_noise -> (w (m,) -> ())``: the GM in ``params`` (``None`` or a GM override; each
+    component's residual wrapped on ``angle_dims``) or a static log-density (``params_noise``
+    ignored)."""
     if noise is None or isinstance(noise, GaussianMixture):
-        return _gm_logpdf
+        return lambda gm: _gm_logpdf(gm, angle_dims)
     if callable(noise):
         return lambda gm: noise
     raise ValueError(
@@ -381,11 +394,11 @@ def build_pf(
     N = n_particles
     resample = RESAMPLERS[resampling]
     sample_v = _process_sampler(process_noise)
-    meas_lp = _measurement_logpdf(measurement_noise)
+    angle_dims = tuple(model.angle_dims)
+    meas_lp = _measurement_logpdf(measurement_noise, angle_dims)
     f_step, h_step, _, _ = model.step_fns()
     fv = jax.vmap(f_step, in_axes=(0, None))
     hv = jax.vmap(h_step, in_axes=(0, None))
-    angle_dims = tuple(model.angle_dims)
 
     def init(
         params: PFParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None
@@ -414,7 +427,8 @@ def build_pf(
         x = state.particles
         pred = hv(x, inputs)
         z_safe = jnp.where(missing, pred[0], z)
-        residual = wrap_angles(z_safe - pred, angle_dims)  # angles: the residual on the circle
+        # angles: the residual on the circle; a GM noise wraps each component's z - h(x) - r_j again
+        residual = wrap_angles(z_safe - pred, angle_dims)
         ll_i = jax.vmap(meas_lp(params.model.measurement_noise))(residual)
         lw, loglik, degenerate = _reweight(state.log_weights, ll_i, missing)
         ess = effective_sample_size(lw)
