@@ -1,6 +1,9 @@
 """A user's own model, continued: angular Gaussian-mixture noise in the particle filter, the seed 004
 bank with irregular dt, controls and per-step noise, and state-dependent process noise."""
 
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,7 +13,7 @@ from gmjax import filters
 from gmjax import mixture as gmm
 from gmjax.filters import StepInputs
 from gmjax.mixture import GaussianMixture
-from gmjax.models import StateSpaceModel
+from gmjax.models import StateSpaceModel, inputs_from_times
 from gmjax.models import library as lib
 
 jax.config.update("jax_enable_x64", True)
@@ -142,3 +145,190 @@ def test_pf_one_update_with_angular_gm_noise_matches_numpy():
     w = lik / lik.sum()
     np.testing.assert_allclose(info.mean, w @ x, rtol=1e-9)
     np.testing.assert_allclose(info.loglik, np.log(lik.mean()), rtol=1e-9)
+
+
+# --- the seed 004 bank with irregular dt, a control and the step's process noise -----------------
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from reference.bank_np import _kf, _logpdf, _moments  # noqa: E402
+
+T_BANK = 20
+H_BANK = np.array([[1.0, 0.0]])
+JITTER = 1e-9
+
+
+def _bank_steps():
+    """Irregular times, a control (acceleration) per step and the measurement noise draws."""
+    rng = np.random.default_rng(11)
+    times = np.cumsum(rng.uniform(0.05, 1.5, T_BANK))
+    return times, rng.normal(size=(T_BANK, 1)), rng
+
+
+def _F(dt):
+    return np.array([[1.0, dt], [0.0, 1.0]])
+
+
+def _B(dt):
+    return np.array([[dt**2 / 2], [dt]])
+
+
+def _rwv_noise(weights, means, variances):
+    """Process clusters ``v = (1, 1)^T s`` at the reference ``dt = 1`` (rank one, plus a jitter), as
+    ``(weights, means (n, 2), covs (n, 2, 2))``."""
+    g = np.ones(2)
+    return (
+        np.asarray(weights, float),
+        np.asarray(means, float)[:, None] * g,
+        np.asarray(variances, float)[:, None, None] * np.outer(g, g) + JITTER * np.eye(2),
+    )
+
+
+def _to_dt(dt):
+    """``A(dt) = diag(dt, 1)`` maps the reference noise ``(1, 1)^T s`` to ``(dt, 1)^T s``."""
+    return np.diag([dt, 1.0])
+
+
+def _bank_model(process, measurement):
+    """Random-walk velocity with an acceleration control at irregular times (``call="inputs"``); the
+    process noise follows the step through ``process_noise_at`` (``Q(dt) = A Q(1) A^T``)."""
+
+    def f(x, inputs):
+        dt = inputs.dt
+        F = jnp.stack(
+            [jnp.stack([jnp.ones_like(dt), dt]), jnp.stack([jnp.zeros_like(dt), jnp.ones_like(dt)])]
+        )
+        B = jnp.stack([dt**2 / 2, dt])
+        u = 0.0 if inputs.control is None else inputs.control[0]  # Red-SSG's F: no control
+        return F @ x + B * u
+
+    def noise_at(noise, inputs):
+        A = jnp.diag(jnp.stack([inputs.dt, jnp.ones_like(inputs.dt)]))
+        covs = jnp.einsum("ij,kjl,ml->kim", A, noise.covs, A)
+        return noise._replace(means=noise.means @ A.T, covs=covs)
+
+    return StateSpaceModel(
+        f=f,
+        h=lambda x, inputs: jnp.asarray(H_BANK) @ x,
+        process_noise=GaussianMixture.create(*process),
+        measurement_noise=GaussianMixture.create(*measurement),
+        prior=gmm.from_gaussian(jnp.zeros(2), 10.0 * jnp.eye(2)),
+        process_noise_at=noise_at,
+        call="inputs",
+    )
+
+
+def _bank_data(process, measurement):
+    """A run of the model (truth drawn in NumPy), its :class:`StepInputs` and the true pairs."""
+    times, us, rng = _bank_steps()
+    dts = np.diff(np.concatenate([[0.0], times]))
+    qw, qu, qQ = process
+    rw, rb, rR = measurement
+    x, zs, active = np.zeros(2), [], []
+    for k, dt in enumerate(dts):
+        i, j = rng.choice(len(qw), p=qw / qw.sum()), rng.choice(len(rw), p=rw / rw.sum())
+        A = _to_dt(dt)
+        x = _F(dt) @ x + _B(dt) @ us[k] + rng.multivariate_normal(A @ qu[i], A @ qQ[i] @ A.T)
+        zs.append(H_BANK @ x + rng.multivariate_normal(rb[j], rR[j]))
+        active.append((i, j))
+    inputs = inputs_from_times(times, control=jnp.asarray(us))
+    return np.array(zs), inputs._replace(aux=jnp.asarray(active, jnp.int32)), dts, us
+
+
+def _bank_np(method, zs, dts, us, process, measurement, active):
+    """NumPy bank (seed 004 eqs 5–17) with ``F(dt)``, ``B(dt) u`` and ``Q_i(dt)`` per step; eq 17's
+    process term uses ``G(dt)^+``, ``G(dt) = (dt, 1)^T``."""
+    qw, qu, qQ = (np.asarray(a, float) for a in process)
+    rw, rb, rR = (np.asarray(a, float) for a in measurement)
+    qw, rw = qw / qw.sum(), rw / rw.sum()
+    m, P = np.zeros(2), 10.0 * np.eye(2)
+    out = []
+    for k, (z, dt) in enumerate(zip(zs, dts)):
+        A, F, Bu = _to_dt(dt), _F(dt), _B(dt) @ us[k]
+        u_dt = [A @ u + Bu for u in qu]  # the control enters as a known process-noise mean
+        Q_dt = [A @ Q @ A.T for Q in qQ]
+        if method == "kf-mm":
+            qm, qP = _moments(qw, [A @ u for u in qu], Q_dt)
+            rm, rP = _moments(rw, rb, rR)
+            m, P, _ = _kf(m, P, z, F, H_BANK, qm + Bu, qP, rm, rP)
+            out.append(m)
+            continue
+        keys = [(i, j) for i in range(len(qw)) for j in range(len(rw))]
+        post = {(i, j): _kf(m, P, z, F, H_BANK, u_dt[i], Q_dt[i], rb[j], rR[j]) for i, j in keys}
+        lw = np.array([np.log(qw[i]) + np.log(rw[j]) + post[i, j][2] for i, j in keys])
+        mu = np.exp(lw - lw.max())
+        mu /= mu.sum()
+        best = keys[int(np.argmax(mu))]
+        if method == "gsf-merge":
+            m, P = _moments(mu, [post[key][0] for key in keys], [post[key][1] for key in keys])
+            out.append(m)
+            continue
+        if method == "gsf-remove":
+            sel = best
+        elif method == "matched":
+            sel = tuple(int(a) for a in active[k])
+        else:
+            if method == "red-gsfm":
+                x_check = sum(w * post[key][0] for w, key in zip(mu, keys))
+            elif method == "red-gsfr":
+                x_check = post[best][0]
+            else:  # red-dkg
+                qm, qP = _moments(qw, [A @ u for u in qu], Q_dt)
+                x_check = _kf(m, P, z, F, H_BANK, qm + Bu, qP, *_moments(rw, rb, rR))[0]
+            Gp = np.linalg.pinv(np.array([[dt], [1.0]]))
+            v = Gp @ (x_check - F @ m - Bu)  # eq 15
+            w = z - H_BANK @ x_check  # eq 16
+            si = [np.log(qw[i]) + _logpdf(v, Gp @ (A @ qu[i]), Gp @ Q_dt[i] @ Gp.T) for i in range(len(qw))]
+            sj = [np.log(rw[j]) + _logpdf(w, rb[j], rR[j]) for j in range(len(rw))]
+            sel = (int(np.argmax(si)), int(np.argmax(sj)))  # eq 17
+        m, P = post[sel][0], post[sel][1]
+        out.append(m)
+    return np.array(out)
+
+
+PROCESS2 = _rwv_noise([0.7, 0.3], [0.0, 1.5], [0.2, 1.0])
+MEASUREMENT2 = (np.array([0.8, 0.2]), np.array([[0.0], [2.0]]), np.array([[[0.3]], [[3.0]]]))
+NP_METHODS = ["gsf-merge", "gsf-remove", "matched", "kf-mm", "red-gsfm", "red-gsfr", "red-dkg"]
+
+
+@pytest.mark.parametrize("method", NP_METHODS)
+def test_bank_with_irregular_dt_control_and_step_noise_matches_numpy(method):
+    zs, inputs, dts, us = _bank_data(PROCESS2, MEASUREMENT2)
+    filt = filters.bank.build_bank(_bank_model(PROCESS2, MEASUREMENT2), method)
+    _, infos = jax.jit(lambda z, i: filters.run(filt, z, i))(jnp.asarray(zs), inputs)
+    ref = _bank_np(method, zs, dts, us, PROCESS2, MEASUREMENT2, np.asarray(inputs.aux))
+    np.testing.assert_allclose(np.asarray(infos.mean), ref, rtol=1e-9, atol=1e-9)
+
+
+def test_bank_gsf_merge_and_remove_equal_the_gsf_with_one_slot():
+    """The bank is the Gaussian sum filter of one Gaussian: GSF-merge is the GSF merging everything
+    (Runnalls to one component), GSF-remove the GSF keeping the heaviest (capacity 1)."""
+    from gmjax import reduction
+
+    zs, inputs, _, _ = _bank_data(PROCESS2, MEASUREMENT2)
+    model = _bank_model(PROCESS2, MEASUREMENT2)
+    zs = jnp.asarray(zs)
+    merge = filters.run(filters.bank.build_bank(model, "gsf-merge"), zs, inputs)[1].mean
+    gsf = filters.run(filters.build_gsf(model, "kf", reduction.Runnalls(num_out=1), 1), zs, inputs)[1].mean
+    np.testing.assert_allclose(merge, gsf, rtol=1e-10, atol=1e-10)
+    remove = filters.run(filters.bank.build_bank(model, "gsf-remove"), zs, inputs)[1].mean
+    kept = filters.run(filters.build_gsf(model, "kf", None, 1), zs, inputs)[0].mixture.means[:, 0]
+    np.testing.assert_allclose(remove, kept, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "methods",
+    [("red-pkg", "red-ssg"), pytest.param(filters.bank.BANK_METHODS, marks=pytest.mark.slow)],
+    ids=["gain-methods", "all"],
+)
+def test_bank_one_cluster_is_the_closed_form_kf(methods):
+    """One cluster per noise: every method is the Kalman filter with ``F(dt)``, ``B(dt) u`` and
+    ``Q(dt)`` of each step (the two approximate-gain methods by default; the others are checked
+    with two clusters above, all of them in the slow case)."""
+    process = _rwv_noise([1.0], [0.5], [0.4])
+    measurement = (np.array([1.0]), np.array([[-0.3]]), np.array([[[0.5]]]))
+    zs, inputs, dts, us = _bank_data(process, measurement)
+    model = _bank_model(process, measurement)
+    ref = _bank_np("gsf-merge", zs, dts, us, process, measurement, None)
+    for method in methods:
+        _, infos = filters.run(filters.bank.build_bank(model, method), jnp.asarray(zs), inputs)
+        np.testing.assert_allclose(np.asarray(infos.mean), ref, rtol=1e-9, atol=1e-9, err_msg=method)
