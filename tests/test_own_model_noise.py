@@ -332,3 +332,149 @@ def test_bank_one_cluster_is_the_closed_form_kf(methods):
     for method in methods:
         _, infos = filters.run(filters.bank.build_bank(model, method), jnp.asarray(zs), inputs)
         np.testing.assert_allclose(np.asarray(infos.mean), ref, rtol=1e-9, atol=1e-9, err_msg=method)
+
+
+# --- state-dependent process noise ----------------------------------------------------------------
+
+Q_SD, R_SD, SENSOR_Y = 0.4, 0.25, 10.0
+A_SD, B_SD = 0.2, 0.5  # Q(x, dt) = (A + B v^2) Q_cv(dt): the noise grows with the speed v
+
+
+def _speed_scale(x):
+    return A_SD + B_SD * x[1] ** 2
+
+
+def _sd_model(range_measurement: bool = True) -> StateSpaceModel:
+    """1-D constant velocity at irregular times whose process noise depends on the speed, seen
+    through the range to a sensor off the track (or its position)."""
+    motion = lib.constant_velocity(1, Q_SD)
+    scale = lib.noise_scaler(motion.Q, 1.0)
+
+    def noise_at(noise, inputs, x):  # three parameters: the noise depends on the state
+        q = scale(noise, inputs.dt)
+        return q._replace(covs=q.covs * _speed_scale(x))
+
+    def h(x, inputs):
+        return jnp.hypot(x[:1], SENSOR_Y) if range_measurement else x[:1]
+
+    return StateSpaceModel(
+        f=lambda x, inputs: motion.f(x, inputs.dt),
+        h=h,
+        process_noise=gmm.from_gaussian(jnp.zeros(2), motion.Q(jnp.asarray(1.0))),
+        measurement_noise=gmm.from_gaussian(jnp.zeros(1), R_SD * jnp.eye(1)),
+        prior=gmm.from_gaussian(jnp.array([-5.0, 1.0]), jnp.diag(jnp.array([4.0, 1.0]))),
+        process_noise_at=noise_at,
+        call="inputs",
+    )
+
+
+def _sd_data():
+    rng = np.random.default_rng(5)
+    times = np.cumsum(rng.uniform(0.1, 1.2, 20))
+    zs = np.hypot(-5.0 + 1.5 * times, SENSOR_Y)[:, None] + rng.normal(0, 0.5, (20, 1))
+    zs[6] = np.nan  # a missing measurement: predict only
+    return times, zs
+
+
+def _ekf_rts_np(times, zs, range_measurement=True):
+    """Hand-written EKF and RTS smoother with ``Q(m_{k-1}, dt_k)`` at the mean predicted from."""
+    m, P = np.array([-5.0, 1.0]), np.diag([4.0, 1.0])
+    ms, Ps, Fs, Pps = [], [], [], []
+    prev = 0.0
+    for t, z in zip(times, zs):
+        dt, prev = t - prev, t
+        F = np.array([[1.0, dt], [0.0, 1.0]])
+        Q = (A_SD + B_SD * m[1] ** 2) * Q_SD * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        m, P = F @ m, F @ P @ F.T + Q
+        Fs.append(F), Pps.append(P)
+        if not np.isnan(z).any():
+            r = np.hypot(m[0], SENSOR_Y) if range_measurement else m[0]
+            H = np.array([[m[0] / r, 0.0]]) if range_measurement else np.array([[1.0, 0.0]])
+            S = H @ P @ H.T + R_SD
+            K = P @ H.T / S
+            m = m + (K * (z - r)).ravel()
+            A = np.eye(2) - K @ H
+            P = A @ P @ A.T + R_SD * K @ K.T
+        ms.append(m), Ps.append(P)
+    sm, sP = [ms[-1]], [Ps[-1]]
+    for k in range(len(times) - 2, -1, -1):  # Pps[k + 1] used Q at ms[k]: the filter's own
+        G = Ps[k] @ Fs[k + 1].T @ np.linalg.inv(Pps[k + 1])
+        sm.insert(0, ms[k] + G @ (sm[0] - Fs[k + 1] @ ms[k]))
+        sP.insert(0, Ps[k] + G @ (sP[0] - Pps[k + 1]) @ G.T)
+    return np.array(ms), np.array(Ps), np.array(sm), np.array(sP)
+
+
+def test_state_dependent_noise_ekf_and_rts_match_a_numpy_loop():
+    times, zs = _sd_data()
+    model = _sd_model()
+    assert model.state_dependent_noise
+    inputs = inputs_from_times(times)
+    _, infos = filters.run(filters.build_ekf(model), jnp.asarray(zs), inputs)
+    m, P, sm, sP = _ekf_rts_np(times, zs)
+    np.testing.assert_allclose(infos.mean, m, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(infos.cov, P, rtol=1e-10, atol=1e-10)
+    smooth = filters.rts_smoother(model, infos.mean, infos.cov, inputs, method="ekf")
+    np.testing.assert_allclose(smooth.mean, sm, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(smooth.cov, sP, rtol=1e-9, atol=1e-9)
+    # the noise does depend on the state: a constant Q(dt) gives other estimates
+    const = model._replace(
+        process_noise_at=lambda noise, inputs: lib.noise_scaler(lib.constant_velocity(1, Q_SD).Q, 1.0)(
+            noise, inputs.dt
+        )
+    )
+    other = filters.run(filters.build_ekf(const), jnp.asarray(zs), inputs)[1].mean
+    assert np.abs(np.asarray(other) - m).max() > 1e-2
+
+
+def test_state_dependent_noise_sigma_point_filters_use_the_mean():
+    """Linear dynamics and measurement: every sigma-point filter (Q evaluated at the mean) is the
+    Kalman filter of the NumPy loop, and so is an IMM of two equal modes."""
+    times, zs = _sd_data()
+    model = _sd_model(range_measurement=False)
+    inputs = inputs_from_times(times)
+    m, P, _, _ = _ekf_rts_np(times, zs, range_measurement=False)
+    builds = [filters.build_kf, filters.build_ukf, filters.build_ckf, filters.build_sckf]
+    builds.append(lambda mod: filters.build_imm([mod, mod], [[0.9, 0.1], [0.1, 0.9]], filter="ekf"))
+    for build in builds:
+        _, infos = filters.run(build(model), jnp.asarray(zs), inputs)
+        np.testing.assert_allclose(infos.mean, m, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(infos.cov, P, rtol=1e-9, atol=1e-9)
+
+
+def _rw_model():
+    """Scalar random walk with ``v ~ N(0, 0.1 + x^2)``, ``x`` the state the step starts from."""
+    return StateSpaceModel(
+        f=lambda x, t: x,
+        h=lambda x, t: x,
+        process_noise=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)),
+        measurement_noise=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)),
+        prior=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)),
+        process_noise_at=lambda noise, inputs, x: noise._replace(covs=noise.covs * (0.1 + x[0] ** 2)),
+    )
+
+
+def test_state_dependent_noise_pf_draws_per_particle_and_simulate_follows_the_state():
+    model = _rw_model()
+    n = 20_000
+    pf = filters.build_pf(model, n)
+    x = jnp.linspace(-3.0, 3.0, n)[:, None]
+    state = filters.pf.PFState(x, jnp.full((n,), -np.log(n)))
+    pred = jax.jit(pf.predict)(pf.params, state, StepInputs(t=jnp.ones(())), key=jax.random.key(1))
+    u = np.asarray((pred.particles - x)[:, 0] / jnp.sqrt(0.1 + x[:, 0] ** 2))  # standardised draws
+    assert abs(u.mean()) < 5 / np.sqrt(n) and abs(u.var() - 1) < 5 * np.sqrt(2 / n), (u.mean(), u.var())
+    # simulate draws the true noise at the true previous state
+    from gmjax.models import scenario_from_model, simulate
+
+    sc = scenario_from_model(model, 3)
+    xs = jax.vmap(lambda k: simulate(sc, k)[0])(jax.random.split(jax.random.key(2), n))[..., 0]
+    u = np.asarray(jnp.diff(xs, axis=1) / jnp.sqrt(0.1 + xs[:, :-1] ** 2)).ravel()
+    assert abs(u.var() - 1) < 5 * np.sqrt(2 / u.size), u.var()
+
+
+def test_state_dependent_noise_is_refused_clearly_where_unsupported():
+    model = _rw_model()
+    zs = jnp.zeros((3, 1))
+    with pytest.raises(ValueError, match="depends on the state"):
+        filters.run(filters.build_gsf(model, "ekf"), zs)
+    with pytest.raises(ValueError, match="depends on the state"):
+        model.noise_at(model.process_noise, StepInputs(t=jnp.ones(())))

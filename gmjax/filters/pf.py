@@ -362,7 +362,11 @@ def build_pf(
         process_noise: overrides ``model.process_noise``: a GM (stored in
             ``params.model.process_noise``), or code kept static in the closure: a sampler
             ``(key, (N,)) -> (N, d)`` or a :class:`TimedSampler` around a per-draw simulator
-            ``(key, t) -> (d,)`` such as ``Scenario.sample_process_noise``.
+            ``(key, t) -> (d,)`` such as ``Scenario.sample_process_noise`` (a sampler is the
+            noise as given: ``model.process_noise_at`` is not applied to it). A GM goes through
+            ``model.process_noise_at`` at every step (``Q(dt)``); a state-dependent one,
+            ``process_noise_at(noise, inputs, x)``, is evaluated at every particle and each
+            particle draws from its own noise.
         measurement_noise: overrides ``model.measurement_noise``: a GM (stored in
             ``params.model.measurement_noise``) or a static log-density ``w (m,) -> ()``.
         regularized: add the Gaussian kernel jitter after each resampling (regularised PF; static).
@@ -394,6 +398,8 @@ def build_pf(
     N = n_particles
     resample = RESAMPLERS[resampling]
     sample_v = _process_sampler(process_noise)
+    gm_noise = process_noise is None or isinstance(process_noise, GaussianMixture)
+    per_particle_noise = gm_noise and model.state_dependent_noise
     angle_dims = tuple(model.angle_dims)
     meas_lp = _measurement_logpdf(measurement_noise, angle_dims)
     f_step, h_step, _, _ = model.step_fns()
@@ -414,9 +420,18 @@ def build_pf(
         params: PFParams, state: PFState, inputs: StepInputs, *, key: PRNGKey | None = None
     ) -> PFState:
         key = _require_key(key, "predict")
-        noise = model.noise_at(params.model.process_noise, inputs)  # e.g. Q(dt)
-        v = sample_v(noise, key, (N,), inputs.t).astype(state.particles.dtype)
-        return PFState(fv(state.particles, inputs) + v, state.log_weights)
+        x = state.particles
+        if per_particle_noise:  # v_i ~ process_noise_at(noise, inputs, x_i): one draw per particle
+
+            def draw(xi, ki):
+                return _gm_sampler(model.noise_at(params.model.process_noise, inputs, xi))(ki, ())
+
+            v = jax.vmap(draw)(x, jax.random.split(key, N))
+        elif gm_noise:
+            v = sample_v(model.noise_at(params.model.process_noise, inputs), key, (N,), inputs.t)  # Q(dt)
+        else:  # a sampler given to build_pf: it is the noise (params and process_noise_at unused)
+            v = sample_v(params.model.process_noise, key, (N,), inputs.t)
+        return PFState(fv(x, inputs) + v.astype(x.dtype), state.log_weights)
 
     def update(
         params: PFParams, state: PFState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
