@@ -230,9 +230,12 @@ def build_imm(
     moments = imm_moments(base)
 
     def pred_branch(j: int) -> Callable:
-        return lambda p, s, t: locals_[j].predict(
-            s, t, *gaussian_moments(models[j].noise_at(p.models[j].process_noise, t))
-        )
+        def predict_j(p, s, t):
+            x = locals_[j].moments(s)[0] if models[j].state_dependent_noise else None  # mixed mean
+            noise = models[j].noise_at(p.models[j].process_noise, t, x)
+            return locals_[j].predict(s, t, *gaussian_moments(noise))
+
+        return predict_j
 
     def upd_branch(j: int) -> Callable:
         return lambda p, s, z, t: locals_[j].update(s, z, t, *gaussian_moments(p.models[j].measurement_noise))
