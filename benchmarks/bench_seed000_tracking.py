@@ -89,7 +89,7 @@ def with_r_thresholds(study, thresholds):
         if tau == R_GSF_THRESHOLD:
             continue
         filters[f"R-GSF τ={tau:g}"] = lambda sc, tau=tau: build_gsf(
-            sc.model, "ekf", Runnalls(num_out=1, threshold=tau, capacity=n_u), capacity=n_u
+            sc.model, "ekf", Runnalls(num_out=1, threshold=tau, capacity=n_u), capacity=n_u, track_ise=True
         )
     return study._replace(filters=filters)
 

@@ -512,7 +512,8 @@ class MonteCarloResult(NamedTuple):
         cep: ``()`` median position error over all runs and steps (seed 004 eq 24; histogram).
         mean_cost: ``()`` time/run average of the reducer's own cost (``ReductionInfo.cost``): the
             AEISE for PCM / GMRCM, a summed KL bound for Runnalls, 0 for pruning; ``mean_ise`` the
-            time/run average of the ISE of each reduction.
+            time/run average of the ISE of each reduction (``nan`` when the filter does not report
+            ``extra["ise"]``, e.g. a GSF built without ``track_ise``).
         n_components: ``(T,)`` mean live components per step.
         flag_rate: ``()`` fraction of steps with any flag; ``n_runs_flagged``: runs with any flag.
         n_runs: runs in the result; ``runs``: ``(start, stop)`` of the run indices.
@@ -587,6 +588,7 @@ class MonteCarloResult(NamedTuple):
             "compile_s": self.compile_s,
             "run_s": self.run_s,
             "resumed_runs": self.resumed_runs,
+            "ise_tracked": not np.isnan(self.mean_ise),
         }
         arrays["meta"] = np.asarray(json.dumps(json_safe(meta)))
         _atomic_savez(path, arrays)
@@ -612,6 +614,7 @@ def load_result(path: str | os.PathLike) -> MonteCarloResult:
         compile_s=meta["compile_s"] or 0.0,
         run_s=meta["run_s"] or 0.0,
         resumed_runs=meta["resumed_runs"],
+        ise_tracked=meta.get("ise_tracked", True),
     )
 
 
@@ -641,6 +644,7 @@ def _finalize(
     compile_s: float = 0.0,
     run_s: float = 0.0,
     resumed_runs: int = 0,
+    ise_tracked: bool = True,
 ) -> MonteCarloResult:
     n = int(m.n)
     i = SCORE_NAMES.index
@@ -663,7 +667,7 @@ def _finalize(
         median_nees=_hist_median(m.hist[0]),
         cep=_hist_median(m.hist[1]),
         mean_cost=avg("cost"),
-        mean_ise=avg("ise"),
+        mean_ise=avg("ise") if ise_tracked else float("nan"),
         n_components=m.mean[i("n_components")].copy(),
         flag_rate=avg("flags"),
         n_runs_flagged=int(m.n_flagged_runs),
@@ -700,7 +704,14 @@ def summarize(
         col(scores.ise),
     )
     moments = _to_host(_moments(s, np.ones(N, bool), np))
-    return _finalize(moments, runs=(0, N), scores=scores, compile_s=compile_s, run_s=run_s)
+    return _finalize(
+        moments,
+        runs=(0, N),
+        scores=scores,
+        compile_s=compile_s,
+        run_s=run_s,
+        ise_tracked=scores.ise is not None,
+    )
 
 
 def merge(results: Sequence[MonteCarloResult]) -> MonteCarloResult:
@@ -744,6 +755,7 @@ def merge(results: Sequence[MonteCarloResult]) -> MonteCarloResult:
         config=config,
         compile_s=sum(r.compile_s for r in results),
         run_s=sum(r.run_s for r in results),
+        ise_tracked=not any(np.isnan(r.mean_ise) for r in results),
     )
 
 
@@ -890,8 +902,10 @@ def _chunk_program(
     keep_traj: bool,
     mesh: jax.sharding.Mesh,
 ):
-    """jit of ``(key_data, start, n_valid) -> (StudyMoments, RunScores | None)`` for ``chunk`` runs."""
+    """jit of ``(key_data, start, n_valid) -> (StudyMoments, RunScores | None)`` for ``chunk`` runs, and a
+    dict filled when it is traced: ``"ise_tracked"``, whether the filter reports ``extra["ise"]``."""
     P = jax.sharding.PartitionSpec
+    meta: dict[str, bool] = {}
     runs_sharding = jax.sharding.NamedSharding(mesh, P("runs"))
     replicated = jax.sharding.NamedSharding(mesh, P())
 
@@ -899,15 +913,19 @@ def _chunk_program(
         offsets = jnp.arange(chunk, dtype=jnp.uint32)
         idx = jax.lax.with_sharding_constraint(start + offsets, runs_sharding)
         keys = jax.vmap(run_key, (None, 0))(key, idx)
-        scores = jax.vmap(
-            lambda k: score_run(filter, scenario, k, params=params, keep_trajectories=keep_traj)
-        )(keys)
+
+        def one(k):
+            r = filter_run(filter, scenario, k, params)
+            meta["ise_tracked"] = "ise" in r.infos.extra
+            return score_filtered(r, keep_trajectories=keep_traj)
+
+        scores = jax.vmap(one)(keys)
         mask = offsets < n_valid
         moments = _moments(scores, mask, jnp)
         return moments, (scores if keep else None)
 
     out_shardings = (replicated, runs_sharding) if keep else (replicated, None)
-    return jax.jit(fn, out_shardings=out_shardings)
+    return jax.jit(fn, out_shardings=out_shardings), meta
 
 
 def _host(x) -> np.ndarray:
@@ -1011,7 +1029,7 @@ def monte_carlo(
     bar = Progress(len(runs), desc=label, unit="runs", enabled=bool(progress), initial=resumed)
     mesh = jax.sharding.Mesh(np.asarray(devices), ("runs",))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    program = _chunk_program(filter, scenario, params, chunk, keep_runs > 0, keep_trajectories, mesh)
+    program, meta = _chunk_program(filter, scenario, params, chunk, keep_runs > 0, keep_trajectories, mesh)
 
     def put(x):
         x = np.asarray(x)
@@ -1020,7 +1038,10 @@ def monte_carlo(
     key_arr = jax.random.wrap_key_data(put(jax.random.key_data(key)), impl=jax.random.key_impl(key))
     compile_s = 0.0
     t0 = time.perf_counter()
-    if next_run < runs.stop:
+    if next_run >= runs.stop:
+        program.trace(key_arr, put(np.uint32(0)), put(np.uint32(0)))  # fills meta; nothing to run
+        bar.update(0)
+    else:
         with bar.compiling(f"{chunk} runs per chunk"):
             t_c = time.perf_counter()
             compiled = program.lower(key_arr, put(np.uint32(0)), put(np.uint32(0))).compile()
@@ -1039,8 +1060,6 @@ def monte_carlo(
             if checkpoint is not None and jax.process_index() == 0:
                 _write_checkpoint(checkpoint, config, next_run, moments, kept)
             bar.update(n_valid)
-    else:
-        bar.update(0)
     run_s = time.perf_counter() - t0
     scores = None
     if keep_runs:
@@ -1053,4 +1072,5 @@ def monte_carlo(
         compile_s=compile_s,
         run_s=run_s,
         resumed_runs=resumed,
+        ise_tracked=meta["ise_tracked"],
     )

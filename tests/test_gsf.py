@@ -258,3 +258,38 @@ def test_vmap_over_parameter_sets_equals_loop():
     batched = jax.jit(jax.vmap(loglik))(scales)
     for i, s in enumerate(scales):
         np.testing.assert_allclose(batched[i], loglik(s), rtol=1e-12)
+
+
+def test_ise_diagnostic_is_opt_in_and_equals_the_closed_form_ise():
+    """``track_ise`` adds ``extra["ise"]`` = metrics.ise(updated, reduced); without it the key is absent
+    and a Monte Carlo study reports ``mean_ise`` as NaN (not tracked) rather than 0."""
+    from gmjax import metrics
+    from gmjax.filters.gsf import gs_predict, gs_update
+    from gmjax.filters.local import local_filter_for
+    from gmjax.montecarlo import monte_carlo
+
+    sc = jump_system()
+    sc = sc._replace(n_steps=3)
+    red = PruneTop(num_out=6)
+    _, zs, ts = simulate(sc, jax.random.key(1))
+    plain = build_gsf(sc.model, "ekf", red, capacity=6)
+    tracked = build_gsf(sc.model, "ekf", red, capacity=6, track_ise=True)
+    s0 = tracked.init(tracked.params)
+    inp = StepInputs(t=ts[0])
+    s1 = tracked.predict(tracked.params, s0, inp)
+    state, info = tracked.update(tracked.params, s1, zs[0], inp)
+    # the same step by hand: the updated mixture and its reduction, then the closed-form ISE
+    local = local_filter_for(sc.model, "ekf")
+    pred = gs_predict(local, s0.mixture, inp, sc.model.process_noise)
+    up = gs_update(local, pred, zs[0], inp, sc.model.measurement_noise).mixture
+    np.testing.assert_allclose(info.extra["ise"], metrics.ise(up, state.mixture), rtol=1e-12)
+    assert float(info.extra["ise"]) > 0
+    _, plain_info = plain.update(
+        plain.params, plain.predict(plain.params, plain.init(plain.params), inp), zs[0], inp
+    )
+    assert "ise" not in plain_info.extra
+    np.testing.assert_array_equal(plain_info.mean, info.mean)
+    r_plain = monte_carlo(plain, sc, 4, jax.random.key(0), progress=False)
+    r_tracked = monte_carlo(tracked, sc, 4, jax.random.key(0), progress=False)
+    assert np.isnan(r_plain.mean_ise) and r_tracked.mean_ise > 0
+    assert r_plain.armse == r_tracked.armse

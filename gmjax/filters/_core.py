@@ -270,7 +270,9 @@ def from_local(model: StateSpaceModel, local: LocalFilter) -> Filter:
     ``filter.params`` is ``model.params`` (:class:`~gmjax.models.ModelParams`). Single-Gaussian
     filters moment-match a GM prior and GM noises: the prior is replaced by
     ``N(mean(prior), cov(prior))`` and each noise by its mean and covariance
-    (:func:`gaussian_moments`), the best single-Gaussian (KL-projection) fit.
+    (:func:`gaussian_moments`), the best single-Gaussian (KL-projection) fit. A state-dependent
+    process noise (``process_noise_at(noise, inputs, x)``) is evaluated at the mean the step
+    predicts from (for every local filter, sigma-point ones included).
     """
 
     def init(params: ModelParams, prior: Any = None, *, key: PRNGKey | None = None):
@@ -279,7 +281,9 @@ def from_local(model: StateSpaceModel, local: LocalFilter) -> Filter:
 
     def predict(params: ModelParams, state, inputs: StepInputs, *, key: PRNGKey | None = None):
         del key
-        noise = model.noise_at(params.process_noise, inputs)
+        # a state-dependent noise at the mean predicted from (docstring of StateSpaceModel.noise_at)
+        x = local.moments(state)[0] if model.state_dependent_noise else None
+        noise = model.noise_at(params.process_noise, inputs, x)
         return local.predict(state, inputs, *gaussian_moments(noise))
 
     def update(params: ModelParams, state, z, inputs: StepInputs, *, key: PRNGKey | None = None):

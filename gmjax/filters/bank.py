@@ -75,6 +75,19 @@ Readings where the paper is not explicit (each also stated where it is implement
   ``jit`` XLA drops that work when ``loglik`` is not used.
 * **Missing measurement** (a NaN in ``z``): every method returns the moment-matched prediction
   (log-likelihood 0).
+* **Per-step inputs.** ``f`` and ``h`` receive the step's :class:`~gmjax.filters.StepInputs` in
+  the model's call convention (``f(x, t)``, ``f(x, u, t)`` with a control, ``f(x, inputs)``), so
+  irregular ``dt`` and controls reach ``F x + B u``; ``F`` and ``H`` are the Jacobians at each step.
+  The process clusters of every step are ``model.noise_at(params.model.process_noise, inputs)``
+  (``Q(dt)``; as :func:`~gmjax.filters.gsf.build_gsf` reads them), in eqs 5–6, in eq 17, in
+  ``Q̄`` (Red-PKG) and in the moment-matched noise (``kf-mm``, Red-DKG). With ``noise_gain="auto"``
+  and a per-step process noise whose clusters are rank deficient, ``G^+`` of eq 17 is re-derived
+  at every step from the leading eigenvectors of that step's ``sum_i w^i Q^i(dt)`` (the rank is
+  fixed at build time), so a noise direction that moves with ``dt`` (``G = (dt, 1)^T``) is
+  followed; an explicit ``noise_gain`` stays fixed. Red-SSG's steady-state gains are computed
+  once, from ``F``, ``H`` at ``StepInputs(t=1, dt=1)`` (no control) and the noises in ``params``:
+  a steady state only exists for a time-invariant model. The bank ignores ``angle_dims``
+  (a linear model).
 
 Time indexing follows :func:`gmjax.filters.run`.
 """
@@ -127,7 +140,7 @@ BANK_METHODS = (
 )
 _FULL_BANK = ("gsf-merge", "gsf-remove", "red-gsfm", "red-gsfr")
 
-Linearize = Callable[[Array, Array], tuple[Array, Array]]
+Linearize = Callable[[Array, Any], tuple[Array, Array]]  # (x, inputs) -> (value, Jacobian)
 
 
 class BankParams(NamedTuple):
@@ -181,9 +194,14 @@ def _noise_log_weights(noise: GaussianMixture) -> Array:
     return jnp.where(noise.mask, lw - logsumexp(lw), -jnp.inf)
 
 
-def _bank_noises(model: ModelParams, method: str) -> tuple[GaussianMixture, GaussianMixture]:
-    """The bank's process and measurement clusters: the model's, or for ``kf-mm`` their moments."""
+def _bank_noises(
+    model: ModelParams, method: str, noise_at: Callable | None = None, inputs: Any = None
+) -> tuple[GaussianMixture, GaussianMixture]:
+    """The bank's process and measurement clusters: the model's (the process noise at the step's
+    ``inputs`` through ``noise_at``, e.g. ``Q(dt)``), or for ``kf-mm`` their moments."""
     q_noise, r_noise = model.process_noise, model.measurement_noise
+    if noise_at is not None and inputs is not None:
+        q_noise = noise_at(q_noise, inputs)
     if method == "kf-mm":
         q_noise = gmm.from_gaussian(*gmm.moments(q_noise))
         r_noise = gmm.from_gaussian(*gmm.moments(r_noise))
@@ -289,25 +307,30 @@ def _argmax2(score: Array) -> Array:
 
 
 def _one_update(
-    local: LocalFilter, predicted: GaussianMixture, r_noise: GaussianMixture, sel: Array, z: Array, t: Array
+    local: LocalFilter,
+    predicted: GaussianMixture,
+    r_noise: GaussianMixture,
+    sel: Array,
+    z: Array,
+    inputs: Any,
 ) -> tuple[Array, Array, Array]:
     """Kalman posterior of model ``M^{ij}`` (eqs 7–8) for ``sel = (i, j)``: ``(mean, cov, repaired)``."""
     i, j = sel[0], sel[1]
     st = local.init(predicted.means[i], predicted.covs[i])
-    new, info = local.update(st, z, t, r_noise.means[j], r_noise.covs[j])
+    new, info = local.update(st, z, inputs, r_noise.means[j], r_noise.covs[j])
     mean, cov = local.moments(new)
     return mean, cov, info.repaired
 
 
 def _preload_update(
-    h_lin: Linearize, mean: Array, preload_cov: Array, r_bar: Array, t: Array
+    h_lin: Linearize, mean: Array, preload_cov: Array, r_bar: Array, inputs: Any
 ) -> tuple[Array, Array, Array]:
     """The data-independent update of the preloaded-gain recursion (Red-PKG, §IV-A 3).
 
     Returns:
         ``(P̄_{k|k} (d, d), K̄_k (d, m), S̄_k (m, m))``.
     """
-    _, Hc = h_lin(mean, t)
+    _, Hc = h_lin(mean, inputs)
     Sp = gaussian.symmetrize(Hc @ preload_cov @ Hc.T + r_bar)
     Kp = kalman_gain(preload_cov @ Hc.T, safe_chol(Sp).factor)
     Ap = jnp.eye(mean.shape[0], dtype=mean.dtype) - Kp @ Hc
@@ -323,7 +346,7 @@ def _gain_estimate(
     K: Array,
     S: Array,
     z: Array,
-    t: Array,
+    inputs: Any,
 ) -> tuple[Array, Array, Array]:
     """GSF-merge mean (eqs 9–10) with given gains (Red-PKG, Red-SSG).
 
@@ -338,7 +361,7 @@ def _gain_estimate(
 
     def one(i, j):
         xp = predicted.means[i]
-        y = z - (h_lin(xp, t)[0] + r_noise.means[j])
+        y = z - (h_lin(xp, inputs)[0] + r_noise.means[j])
         Lc = safe_chol(S[i, j])
         r = jax.scipy.linalg.solve_triangular(Lc.factor, y, lower=True)
         ll = -0.5 * (m * jnp.log(2 * jnp.pi) + r @ r) - jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lc.factor))))
@@ -358,11 +381,11 @@ def _select(
     f_mean: Array,
     x_check: Array,
     z: Array,
-    t: Array,
+    inputs: Any,
 ) -> Array:
     """Eqs 15–17: ``(i*, j*)`` ``(2,)`` int32 from the initial estimate ``x_check``."""
     v = Gpinv @ (x_check - f_mean)  # eq 15 (projected on the noise subspace)
-    w = z - h_lin(x_check, t)[0]  # eq 16
+    w = z - h_lin(x_check, inputs)[0]  # eq 16
     qm = q_noise.means @ Gpinv.T
     qc = jnp.einsum("ab,kbc,dc->kad", Gpinv, q_noise.covs, Gpinv)
     lv = _noise_log_weights(q_noise) + jax.vmap(lambda mu, P: gaussian.logpdf(v, mu, P))(qm, qc)
@@ -399,11 +422,25 @@ class _Static(NamedTuple):
 
     method: str
     dim: int
-    f_lin: Linearize  # x, t -> (f(x, t), F)
-    h_lin: Linearize  # x, t -> (h(x, t), H)
+    f_lin: Linearize  # x, inputs -> (f(x, inputs), F)
+    h_lin: Linearize  # x, inputs -> (h(x, inputs), H)
     local: LocalFilter  # the Kalman filter of one model M^{ij}
     Gpinv: Array | None  # (q, d) G^+ of eq 17 (red-* only)
     ssg_iterations: int
+    noise_at: Callable[[GaussianMixture, Any], GaussianMixture]  # the step's process noise (Q(dt))
+    gain_rank: int | None  # q: re-derive G^+ from each step's noise (auto gain with process_noise_at)
+
+
+def _step_gain(cfg: _Static, q_noise: GaussianMixture) -> Array:
+    """``G^+`` ``(q, d)`` of eq 17 for this step: the static one, or (``noise_gain="auto"`` with a
+    per-step process noise) an orthonormal basis of the ``q`` leading eigenvectors of the step's
+    ``sum_i w^i Q^i`` (``q`` fixed at build time), so a noise subspace that moves with ``dt``
+    (``G = (dt, 1)^T``) is followed."""
+    assert cfg.Gpinv is not None  # set for every red-* method
+    if cfg.gain_rank is None:
+        return cfg.Gpinv
+    _, evecs = jnp.linalg.eigh(_average_cov(q_noise))
+    return evecs[:, -cfg.gain_rank :].T
 
 
 def _init(cfg: _Static, params: BankParams, prior: GaussianMixture | None) -> BankState:
@@ -424,21 +461,28 @@ def _init(cfg: _Static, params: BankParams, prior: GaussianMixture | None) -> Ba
         )
     )
     ss_gain = ss_cov = None
-    if cfg.method == "red-ssg":  # F and H at t = 1: the model must be time invariant
-        t1 = jnp.ones((), jnp.int32)
-        F1 = cfg.f_lin(jnp.zeros((d,), dtype), t1)[1]
-        H1 = cfg.h_lin(jnp.zeros((d,), dtype), t1)[1]
+    if cfg.method == "red-ssg":  # F and H at t = 1, dt = 1: the model must be time invariant
+        t1 = StepInputs(t=jnp.ones((), jnp.int32), dt=jnp.ones((), dtype))
+        try:
+            F1 = cfg.f_lin(jnp.zeros((d,), dtype), t1)[1]
+            H1 = cfg.h_lin(jnp.zeros((d,), dtype), t1)[1]
+        except Exception as e:  # e.g. f(x, u, t) that cannot take u = None
+            raise ValueError(
+                "method: 'red-ssg' evaluates F and H once, at StepInputs(t=1, dt=1) without a "
+                f"control, for its steady-state gains; the model's f or h failed there ({e!r})"
+            ) from e
         ss_gain, ss_cov = _pair_steady_state_gains(
             q_noise.covs, r_noise.covs, F1, H1, gmm.cov(params.model.prior), cfg.ssg_iterations
         )
     return BankState(mean, cov, predicted, mean, cov, cov, ss_gain, ss_cov)
 
 
-def _predict(cfg: _Static, params: BankParams, state: BankState, t: Array) -> BankState:
-    """Eqs 5–6 for every process cluster, and the preloaded-gain covariance prediction."""
-    q_noise, _ = _bank_noises(params.model, cfg.method)
-    fm, F = cfg.f_lin(state.mean, t)
-    predicted = gs_predict(cfg.local, gmm.from_gaussian(state.mean, state.cov), t, q_noise)
+def _predict(cfg: _Static, params: BankParams, state: BankState, inputs: Any) -> BankState:
+    """Eqs 5–6 for every process cluster (the step's process noise, e.g. ``Q(dt)``), and the
+    preloaded-gain covariance prediction."""
+    q_noise, _ = _bank_noises(params.model, cfg.method, cfg.noise_at, inputs)
+    fm, F = cfg.f_lin(state.mean, inputs)
+    predicted = gs_predict(cfg.local, gmm.from_gaussian(state.mean, state.cov), inputs, q_noise)
     mean, cov = gmm.moments(predicted)
     preload = gaussian.symmetrize(F @ state.preload_cov @ F.T + _average_cov(q_noise))
     f_cov = gaussian.symmetrize(F @ state.cov @ F.T)
@@ -454,7 +498,7 @@ def _reduce_full(
     state: BankState,
     up: Any,
     z: Array,
-    t: Array,
+    inputs: Any,
 ) -> tuple[Array, Array, Array, Array]:
     """``gsf-merge``, ``gsf-remove``, ``red-gsfm``, ``red-gsfr``: reduce the full bank (eqs 10–17).
 
@@ -476,8 +520,7 @@ def _reduce_full(
         sel, x_check = best, means[best[0], best[1]]
     else:
         x_check = _merge(mu, means) if cfg.method == "red-gsfm" else means[best[0], best[1]]
-        assert cfg.Gpinv is not None  # set for every red-* method
-        sel = _select(cfg.h_lin, cfg.Gpinv, q_noise, r_noise, state.f_mean, x_check, z, t)
+        sel = _select(cfg.h_lin, _step_gain(cfg, q_noise), q_noise, r_noise, state.f_mean, x_check, z, inputs)
     return means[sel[0], sel[1]], covs[sel[0], sel[1]], x_check, sel  # eqs 13-14
 
 
@@ -488,7 +531,7 @@ def _initial_estimate(
     r_noise: GaussianMixture,
     state: BankState,
     z: Array,
-    t: Array,
+    inputs: Any,
     preload_gain: tuple[Array, Array],
 ) -> tuple[Array, Array, Array]:
     """``x̌_k`` of ``red-pkg``, ``red-ssg``, ``red-dkg`` (§IV-A 3–5): ``(x̌, degenerate, repaired)``.
@@ -513,12 +556,12 @@ def _initial_estimate(
             K,
             S,
             z,
-            t,
+            inputs,
         )
-    # red-dkg: one Kalman step on the moment-matched noises from (x̂_{k-1}, P_{k-1})
-    q_mm_mean, q_mm_cov = gmm.moments(params.model.process_noise)
+    # red-dkg: one Kalman step on the moment-matched (step's) noises from (x̂_{k-1}, P_{k-1})
+    q_mm_mean, q_mm_cov = gmm.moments(q_noise)
     kp = cfg.local.init(state.f_mean + q_mm_mean, gaussian.symmetrize(state.f_cov + q_mm_cov))
-    kf, kinfo = cfg.local.update(kp, z, t, *gmm.moments(params.model.measurement_noise))
+    kf, kinfo = cfg.local.update(kp, z, inputs, *gmm.moments(params.model.measurement_noise))
     return cfg.local.moments(kf)[0], jnp.zeros((), bool), kinfo.repaired
 
 
@@ -539,7 +582,6 @@ def _reduce_single(
         ``(mean, cov, x̌, (i, j), degenerate, repaired)``; ``x̌`` is the posterior mean for
         ``matched`` and ``kf-mm``.
     """
-    t = inputs.t
     degenerate = repaired = jnp.zeros((), bool)
     x_check = None
     if cfg.method == "matched":
@@ -548,11 +590,10 @@ def _reduce_single(
         sel = jnp.zeros((2,), jnp.int32)
     else:
         x_check, degenerate, repaired = _initial_estimate(
-            cfg, params, q_noise, r_noise, state, z, t, preload_gain
+            cfg, params, q_noise, r_noise, state, z, inputs, preload_gain
         )
-        assert cfg.Gpinv is not None  # set for every red-* method
-        sel = _select(cfg.h_lin, cfg.Gpinv, q_noise, r_noise, state.f_mean, x_check, z, t)
-    mean, cov, rep = _one_update(cfg.local, state.predicted, r_noise, sel, z, t)
+        sel = _select(cfg.h_lin, _step_gain(cfg, q_noise), q_noise, r_noise, state.f_mean, x_check, z, inputs)
+    mean, cov, rep = _one_update(cfg.local, state.predicted, r_noise, sel, z, inputs)
     return mean, cov, mean if x_check is None else x_check, sel, degenerate, repaired | rep
 
 
@@ -560,16 +601,17 @@ def _update(
     cfg: _Static, params: BankParams, state: BankState, z: Array, inputs: StepInputs
 ) -> tuple[BankState, StepInfo]:
     """The bank (eqs 7–9), the reduction of ``cfg.method`` and the preloaded-gain update."""
-    q_noise, r_noise = _bank_noises(params.model, cfg.method)
-    t = inputs.t
+    q_noise, r_noise = _bank_noises(params.model, cfg.method, cfg.noise_at, inputs)
     z = jnp.asarray(z, state.mean.dtype)
     missing = is_missing(z)
     # the full bank of eqs 7-9 (its normaliser is the log-likelihood of every method)
-    up = gs_update(cfg.local, state.predicted, z, t, r_noise)
-    zs = jnp.where(missing, cfg.h_lin(state.mean, t)[0] + gmm.mean(r_noise), z)
-    preload_post, Kp, Sp = _preload_update(cfg.h_lin, state.mean, state.preload_cov, _average_cov(r_noise), t)
+    up = gs_update(cfg.local, state.predicted, z, inputs, r_noise)
+    zs = jnp.where(missing, cfg.h_lin(state.mean, inputs)[0] + gmm.mean(r_noise), z)
+    preload_post, Kp, Sp = _preload_update(
+        cfg.h_lin, state.mean, state.preload_cov, _average_cov(r_noise), inputs
+    )
     if cfg.method in _FULL_BANK:
-        mean, cov, x_check, sel = _reduce_full(cfg, q_noise, r_noise, state, up, zs, t)
+        mean, cov, x_check, sel = _reduce_full(cfg, q_noise, r_noise, state, up, zs, inputs)
         degenerate, repaired = up.degenerate, up.repaired
     else:
         mean, cov, x_check, sel, degenerate, repaired = _reduce_single(
@@ -653,10 +695,25 @@ def build_bank(
     if isinstance(ssg_iterations, bool) or not isinstance(ssg_iterations, int) or ssg_iterations < 1:
         raise ValueError(f"ssg_iterations: must be a positive int, got {ssg_iterations!r}")
     check_model(model)
-    f_lin, h_lin = affine_parts(model.f), affine_parts(model.h)
+    f_step, h_step, _, _ = model.step_fns()  # f(x, inputs): t, dt and controls reach the model
+    f_lin, h_lin = affine_parts(f_step), affine_parts(h_step)
     Gpinv = _resolve_noise_gain(noise_gain, model.process_noise) if method.startswith("red-") else None
+    per_step_gain = (
+        Gpinv is not None
+        and isinstance(noise_gain, str)
+        and model.process_noise_at is not None
+        and Gpinv.shape[0] < model.state_dim
+    )
     cfg = _Static(
-        method, model.state_dim, f_lin, h_lin, linearized_filter(f_lin, h_lin), Gpinv, ssg_iterations
+        method,
+        model.state_dim,
+        f_lin,
+        h_lin,
+        linearized_filter(f_lin, h_lin),
+        Gpinv,
+        ssg_iterations,
+        model.noise_at,
+        Gpinv.shape[0] if per_step_gain and Gpinv is not None else None,
     )
 
     def init(
@@ -669,7 +726,7 @@ def build_bank(
         params: BankParams, state: BankState, inputs: StepInputs, *, key: PRNGKey | None = None
     ) -> BankState:
         del key
-        return _predict(cfg, params, state, inputs.t)
+        return _predict(cfg, params, state, inputs)
 
     def update(
         params: BankParams, state: BankState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None

@@ -223,7 +223,7 @@ def build_gsf(
     reducer: Any = None,
     capacity: int = 16,
     *,
-    track_ise: bool = True,
+    track_ise: bool = False,
 ) -> Filter:
     """Build a Gaussian sum filter.
 
@@ -234,13 +234,15 @@ def build_gsf(
         reducer: a :class:`gmjax.reduction.Reducer` config (``params.reducer``); ``None`` keeps the
             heaviest ``capacity`` (:class:`~gmjax.reduction.PruneTop`).
         capacity: ``K``, the posterior's slots (static).
-        track_ise: compute the ISE of each reduction (``O((K L J)^2)``) into ``extra["ise"]``.
+        track_ise: compute the ISE of each reduction into ``extra["ise"]``. Opt-in: with
+            ``O((K L J)^2)`` Gaussian evaluations per step it costs 3–4× the filter itself on the
+            jump system (``benchmarks/results/gsf_kernel.md``).
 
     Returns:
         A :class:`~gmjax.filters.Filter` over :class:`GSFState` with :class:`GSFParams`. Its
         ``StepInfo`` reports the moments of the updated mixture (eqs 17–18), the reducer's
-        ``ReductionInfo``, and ``extra = {"n_updated": live components before reduction,
-        "ise": ISE of the reduction (0 without ``track_ise``)}``.
+        ``ReductionInfo``, and ``extra = {"n_updated": live components before reduction}`` plus
+        ``"ise"``, the ISE of the reduction, with ``track_ise``.
 
     Raises:
         ValueError: a bad model, local filter, reducer or capacity; at ``init``, a prior with more
@@ -283,7 +285,9 @@ def build_gsf(
         if truncate_only:
             overflow = overflow | (rinfo.n_in > capacity)
         mean, cov = gmm.moments(up.mixture)
-        ise = metrics.ise(up.mixture, reduced) if track_ise else jnp.zeros((), mean.dtype)
+        extra = {"n_updated": gmm.n_active(up.mixture)}
+        if track_ise:
+            extra["ise"] = metrics.ise(up.mixture, reduced)
         info = StepInfo(
             mean=mean,
             cov=cov,
@@ -291,7 +295,7 @@ def build_gsf(
             n_components=gmm.n_active(reduced),
             flags=StepFlags(up.repaired, overflow, up.degenerate, up.missing),
             reduction=rinfo,
-            extra={"n_updated": gmm.n_active(up.mixture), "ise": ise},
+            extra=extra,
         )
         return GSFState(reduced, rstate), info
 

@@ -230,9 +230,12 @@ def build_imm(
     moments = imm_moments(base)
 
     def pred_branch(j: int) -> Callable:
-        return lambda p, s, t: locals_[j].predict(
-            s, t, *gaussian_moments(models[j].noise_at(p.models[j].process_noise, t))
-        )
+        def predict_j(p, s, t):
+            x = locals_[j].moments(s)[0] if models[j].state_dependent_noise else None  # mixed mean
+            noise = models[j].noise_at(p.models[j].process_noise, t, x)
+            return locals_[j].predict(s, t, *gaussian_moments(noise))
+
+        return predict_j
 
     def upd_branch(j: int) -> Callable:
         return lambda p, s, z, t: locals_[j].update(s, z, t, *gaussian_moments(p.models[j].measurement_noise))
@@ -387,9 +390,10 @@ def _imm_gsf_info(log_mu: Array, loglik: Array, infos: StepInfo) -> StepInfo:
         "mode_cov": infos.cov,
         "mode_n_components": infos.n_components,
         "n_updated": jnp.sum(infos.extra["n_updated"]),
-        "ise": jnp.sum(mu * infos.extra["ise"]),
         "mode_reduction": infos.reduction,
     }
+    if "ise" in infos.extra:
+        extra["ise"] = jnp.sum(mu * infos.extra["ise"])
     return StepInfo(
         mean,
         cov,
@@ -470,9 +474,9 @@ def build_imm_gsf(
         ``reduction.cost`` per step (Monte Carlo AEISE) get the model-probability-weighted cost;
         ``extra`` = ``{"model_probs": (M,) mu_j, "model_loglik": (M,) log L_j, "mode_mean":
         (M, d), "mode_cov": (M, d, d) each model's pre-reduction moments, "mode_n_components":
-        (M,), "n_updated": () live components before reduction (all models), "ise": ()
-        sum_j mu_j ISE_j (0 unless track_ise; not the ISE of the combined mixture),
-        "mode_reduction": the per-model ReductionInfo stacked on M}``.
+        (M,), "n_updated": () live components before reduction (all models), "mode_reduction":
+        the per-model ReductionInfo stacked on M}``, and with ``track_ise`` ``"ise"``: ()
+        ``sum_j mu_j ISE_j`` (not the ISE of the combined mixture).
 
     Raises:
         ValueError: the checks of :func:`build_imm` and of :func:`gmjax.filters.gsf.build_gsf`;

@@ -20,6 +20,10 @@ bandwidth).
 Noises: the process noise is a :class:`GaussianMixture` (read from ``params`` at every call) or any
 sampler ``(key, (N,)) -> (N, d)`` (e.g. a scenario's true-noise simulator, static code); the
 measurement noise is a :class:`GaussianMixture` (in ``params``) or a log-density ``w (m,) -> ()``.
+
+Angles (``model.angle_dims``): the residual ``z - h(x_i)`` is wrapped into ``[-pi, pi)``; with a GM
+measurement noise each component's residual ``z - h(x_i) - r_j`` is wrapped again, so component
+means that are angles act on the circle (a custom log-density receives the wrapped ``z - h(x_i)``).
 """
 
 from __future__ import annotations
@@ -203,14 +207,20 @@ def _gm_sampler(gm: GaussianMixture) -> Callable[[PRNGKey, tuple], Array]:
     return sample
 
 
-def _gm_logpdf(gm: GaussianMixture) -> Callable[[Array], Array]:
-    """Log-density of a (normalised) GM with factors precomputed; ``w (m,) -> ()``."""
+def _gm_logpdf(gm: GaussianMixture, angle_dims: tuple[int, ...] = ()) -> Callable[[Array], Array]:
+    """Log-density of a (normalised) GM with factors precomputed; ``w (m,) -> ()``.
+
+    ``angle_dims``: components that are angles. Each component's residual ``w - r_j`` is wrapped
+    into ``[-pi, pi)`` before its Gaussian is evaluated (as the Gaussian-sum filter's components
+    do), so a component whose mean is an angle (e.g. a front/back ambiguity at ``pi``) sees its
+    residual on the circle.
+    """
     gm = gmm.normalize(gm)
     factors = jax.vmap(lambda P: safe_chol(P).factor)(gm.covs)
     logw = gmm.log_weights(gm)
 
     def one(w, mean, L):
-        return loglik_from_chol(w - mean, L)
+        return loglik_from_chol(wrap_angles(w - mean, angle_dims), L)
 
     def logpdf(w):
         return logsumexp(logw + jax.vmap(one, (None, 0, 0))(w, gm.means, factors))
@@ -240,11 +250,14 @@ def _process_sampler(noise: Any) -> _ProcessSampler:
     )
 
 
-def _measurement_logpdf(noise: Any) -> Callable[[GaussianMixture], Callable[[Array], Array]]:
-    """``params_noise -> (w (m,) -> ())``: the GM in ``params`` (``None`` or a GM override) or a
-    static log-density (``params_noise`` ignored)."""
+def _measurement_logpdf(
+    noise: Any, angle_dims: tuple[int, ...] = ()
+) -> Callable[[GaussianMixture], Callable[[Array], Array]]:
+    """``params_noise -> (w (m,) -> ())``: the GM in ``params`` (``None`` or a GM override; each
+    component's residual wrapped on ``angle_dims``) or a static log-density (``params_noise``
+    ignored)."""
     if noise is None or isinstance(noise, GaussianMixture):
-        return _gm_logpdf
+        return lambda gm: _gm_logpdf(gm, angle_dims)
     if callable(noise):
         return lambda gm: noise
     raise ValueError(
@@ -349,7 +362,11 @@ def build_pf(
         process_noise: overrides ``model.process_noise``: a GM (stored in
             ``params.model.process_noise``), or code kept static in the closure: a sampler
             ``(key, (N,)) -> (N, d)`` or a :class:`TimedSampler` around a per-draw simulator
-            ``(key, t) -> (d,)`` such as ``Scenario.sample_process_noise``.
+            ``(key, t) -> (d,)`` such as ``Scenario.sample_process_noise`` (a sampler is the
+            noise as given: ``model.process_noise_at`` is not applied to it). A GM goes through
+            ``model.process_noise_at`` at every step (``Q(dt)``); a state-dependent one,
+            ``process_noise_at(noise, inputs, x)``, is evaluated at every particle and each
+            particle draws from its own noise.
         measurement_noise: overrides ``model.measurement_noise``: a GM (stored in
             ``params.model.measurement_noise``) or a static log-density ``w (m,) -> ()``.
         regularized: add the Gaussian kernel jitter after each resampling (regularised PF; static).
@@ -381,11 +398,13 @@ def build_pf(
     N = n_particles
     resample = RESAMPLERS[resampling]
     sample_v = _process_sampler(process_noise)
-    meas_lp = _measurement_logpdf(measurement_noise)
+    gm_noise = process_noise is None or isinstance(process_noise, GaussianMixture)
+    per_particle_noise = gm_noise and model.state_dependent_noise
+    angle_dims = tuple(model.angle_dims)
+    meas_lp = _measurement_logpdf(measurement_noise, angle_dims)
     f_step, h_step, _, _ = model.step_fns()
     fv = jax.vmap(f_step, in_axes=(0, None))
     hv = jax.vmap(h_step, in_axes=(0, None))
-    angle_dims = tuple(model.angle_dims)
 
     def init(
         params: PFParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None
@@ -401,9 +420,18 @@ def build_pf(
         params: PFParams, state: PFState, inputs: StepInputs, *, key: PRNGKey | None = None
     ) -> PFState:
         key = _require_key(key, "predict")
-        noise = model.noise_at(params.model.process_noise, inputs)  # e.g. Q(dt)
-        v = sample_v(noise, key, (N,), inputs.t).astype(state.particles.dtype)
-        return PFState(fv(state.particles, inputs) + v, state.log_weights)
+        x = state.particles
+        if per_particle_noise:  # v_i ~ process_noise_at(noise, inputs, x_i): one draw per particle
+
+            def draw(xi, ki):
+                return _gm_sampler(model.noise_at(params.model.process_noise, inputs, xi))(ki, ())
+
+            v = jax.vmap(draw)(x, jax.random.split(key, N))
+        elif gm_noise:
+            v = sample_v(model.noise_at(params.model.process_noise, inputs), key, (N,), inputs.t)  # Q(dt)
+        else:  # a sampler given to build_pf: it is the noise (params and process_noise_at unused)
+            v = sample_v(params.model.process_noise, key, (N,), inputs.t)
+        return PFState(fv(x, inputs) + v.astype(x.dtype), state.log_weights)
 
     def update(
         params: PFParams, state: PFState, z: Array, inputs: StepInputs, *, key: PRNGKey | None = None
@@ -414,7 +442,8 @@ def build_pf(
         x = state.particles
         pred = hv(x, inputs)
         z_safe = jnp.where(missing, pred[0], z)
-        residual = wrap_angles(z_safe - pred, angle_dims)  # angles: the residual on the circle
+        # angles: the residual on the circle; a GM noise wraps each component's z - h(x) - r_j again
+        residual = wrap_angles(z_safe - pred, angle_dims)
         ll_i = jax.vmap(meas_lp(params.model.measurement_noise))(residual)
         lw, loglik, degenerate = _reweight(state.log_weights, ll_i, missing)
         ess = effective_sample_size(lw)

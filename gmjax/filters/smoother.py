@@ -224,7 +224,8 @@ def rts_smoother(
         return SmootherResult(means, covs, jnp.zeros_like(covs), jnp.zeros_like(covs))
 
     def backward(m, P, inp):
-        q_mean, Q = gaussian_moments(model.noise_at(params.process_noise, inp))
+        x = m if model.state_dependent_noise else None  # Q(x) at the filtered mean, as the filter
+        q_mean, Q = gaussian_moments(model.noise_at(params.process_noise, inp, x))
         return pred(m, P, inp, q_mean.astype(m.dtype), Q.astype(m.dtype))
 
     return _rts_scan(backward, means, covs, _slice_inputs(inputs, 1))

@@ -21,6 +21,7 @@ __all__ = [
     "CALL_CONVENTIONS",
     "inputs_from_times",
     "scenario_from_model",
+    "noise_takes_state",
 ]
 
 CALL_CONVENTIONS = ("t", "u,t", "inputs")
@@ -52,6 +53,31 @@ def call_convention(fn: Callable, call: str = "auto", name: str = "f") -> str:
         k in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD) for k in kinds
     )
     return "u,t" if n_pos == 3 else "t"
+
+
+def noise_takes_state(fn: Callable | None) -> bool:
+    """Whether a ``process_noise_at`` depends on the state: ``fn(noise, inputs, x)`` (three
+    positional parameters) rather than ``fn(noise, inputs)``. Read once, by arity, outside ``jit``."""
+    if fn is None:
+        return False
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    kinds = [p.kind for p in params]
+    if inspect.Parameter.VAR_POSITIONAL in kinds:
+        return False
+    n_pos = sum(
+        k in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD) for k in kinds
+    )
+    return n_pos == 3
+
+
+_STATE_NOISE_SUPPORT = (
+    "the single-Gaussian filters (KF, EKF, UKF, CKF, GHKF, SGKF, SCKF: at the predicted-from mean), "
+    "the IMM (at each mode's mixed mean), the particle filter (per particle), rts_smoother and "
+    "simulate / scenario_from_model"
+)
 
 
 def _is_step_inputs(s: Any) -> bool:
@@ -149,6 +175,10 @@ class StateSpaceModel(NamedTuple):
         process_noise_at: optional ``(noise: GaussianMixture, inputs) -> GaussianMixture``, the
             step's process noise from the one in ``params`` (e.g. ``Q(dt)``; see
             :func:`gmjax.models.library.noise_scaler`). ``None``: the same noise every step.
+            With a third positional parameter, ``(noise, inputs, x) -> GaussianMixture``, the
+            noise also depends on the state ``x (d,)`` at the *start* of the step
+            (``v_k ~ p(v | x_{k-1}, dt)``, state-dependent process noise; see :meth:`noise_at`
+            for where each filter evaluates it).
         call: ``"auto"`` (by arity: 3 positional parameters mean ``(x, u, t)``, else ``(x, t)``),
             ``"t"``, ``"u,t"`` or ``"inputs"``; read once when a filter is built.
     """
@@ -161,7 +191,7 @@ class StateSpaceModel(NamedTuple):
     f_jacobian: Callable[[Array, Array], Array] | None = None
     h_jacobian: Callable[[Array, Array], Array] | None = None
     angle_dims: tuple[int, ...] = ()
-    process_noise_at: Callable[[GaussianMixture, Any], GaussianMixture] | None = None
+    process_noise_at: Callable[..., GaussianMixture] | None = None
     call: str = "auto"
 
     def step_fns(self) -> tuple[Callable, Callable, Callable | None, Callable | None]:
@@ -173,9 +203,42 @@ class StateSpaceModel(NamedTuple):
             as_step_fn(self.h_jacobian, self.call, "h_jacobian"),
         )
 
-    def noise_at(self, noise: GaussianMixture, inputs: Any) -> GaussianMixture:
-        """The step's process noise: ``process_noise_at(noise, inputs)``, or ``noise`` unchanged."""
-        if self.process_noise_at is None or not _is_step_inputs(inputs):
+    @property
+    def state_dependent_noise(self) -> bool:
+        """``process_noise_at`` takes the state: ``(noise, inputs, x)`` (:func:`noise_takes_state`)."""
+        return noise_takes_state(self.process_noise_at)
+
+    def noise_at(self, noise: GaussianMixture, inputs: Any, x: Array | None = None) -> GaussianMixture:
+        """The step's process noise: ``process_noise_at(noise, inputs)``, or ``noise`` unchanged.
+
+        For a state-dependent ``process_noise_at(noise, inputs, x)``, ``x (d,)`` is the state the
+        step starts from. Where it is evaluated: the KF and EKF at the mean they predict from
+        (exact for the linearised filter: ``P' = F P F^T + Q(m)``); the sigma-point filters (UKF,
+        CKF, GHKF, SGKF, SCKF) also at that mean, not per sigma point (so ``E[Q(x)]`` is
+        approximated by ``Q(E[x])``); the IMM at each mode's mixed mean; the particle filter at
+        every particle (exact); :func:`~gmjax.filters.rts_smoother` at each filtered mean, as the
+        forward filter did; :func:`simulate` at the true previous state. The Gaussian-sum filters
+        (GSF, IMM-GSF, AGSSCKF, the seed 004 bank) and the Gaussian-sum smoother do not support
+        it and raise.
+
+        Raises:
+            ValueError: a state-dependent noise called without ``x`` (a filter that does not
+                support it).
+        """
+        if self.process_noise_at is None:
+            return noise
+        if self.state_dependent_noise:
+            if x is None:
+                raise ValueError(
+                    "model.process_noise_at: depends on the state (noise, inputs, x), but this filter "
+                    f"evaluates the process noise without a state; supported by {_STATE_NOISE_SUPPORT}"
+                )
+            if not _is_step_inputs(inputs):
+                from gmjax.filters.base import StepInputs
+
+                inputs = StepInputs(t=inputs)
+            return self.process_noise_at(noise, inputs, x)
+        if not _is_step_inputs(inputs):
             return noise
         return self.process_noise_at(noise, inputs)
 
@@ -207,7 +270,8 @@ class Scenario(NamedTuple):
         model: the :class:`StateSpaceModel` given to the filters.
         n_steps: ``T``.
         sample_initial: ``key -> (d,)``.
-        sample_process_noise: ``(key, t) -> (d,)`` (``(key, inputs)`` with ``noise_takes_inputs``).
+        sample_process_noise: ``(key, t) -> (d,)`` (``(key, inputs)`` with ``noise_takes_inputs``;
+            ``(key, inputs, x_prev)`` when also ``model.state_dependent_noise``).
         sample_measurement_noise: ``(key, t) -> (m,)`` (likewise).
         truth_f, truth_h: true dynamics / measurement function (default: the model's), in the
             model's call convention (``model.call``).
@@ -281,11 +345,17 @@ def simulate(scenario: Scenario, key: Array, inputs: Any = None) -> tuple[Array,
     T = scenario.n_steps
     steps = step_inputs(T, inputs)
     by_inputs = scenario.noise_takes_inputs
+    by_state = by_inputs and model.state_dependent_noise  # v_k ~ p(v | x_{k-1}, inputs)
 
     def step(x, xs):
         inp, kvt, kwt = xs
         arg = inp if by_inputs else inp.t
-        x = f(x, inp) + scenario.sample_process_noise(kvt, arg)
+        v = (
+            scenario.sample_process_noise(kvt, arg, x)
+            if by_state
+            else scenario.sample_process_noise(kvt, arg)
+        )
+        x = f(x, inp) + v
         z = h(x, inp) + scenario.sample_measurement_noise(kwt, arg)
         return x, (x, z)
 
@@ -308,9 +378,10 @@ def scenario_from_model(
     """A :class:`Scenario` whose truth is the model itself, in one call.
 
     Defaults: ``x_0`` from ``model.prior``, the process noise from the model's mixture at each step
-    (through ``process_noise_at``, so ``Q(dt)`` with irregular times), the measurement noise from
-    its mixture. Pass any sampler to replace one (e.g. a glint sampler,
-    :func:`gmjax.models.noise.glint`); custom samplers take ``(key, inputs)``.
+    (through ``process_noise_at``, so ``Q(dt)`` with irregular times, and at the previous true
+    state for a state-dependent noise), the measurement noise from its mixture. Pass any sampler
+    to replace one (e.g. a glint sampler, :func:`gmjax.models.noise.glint`); custom samplers take
+    ``(key, inputs)`` (a process-noise sampler of a state-dependent model ``(key, inputs, x_prev)``).
 
     Args:
         model: the model the filters assume (and, by default, the truth).
@@ -335,7 +406,7 @@ def scenario_from_model(
         n_steps=n_steps,
         sample_initial=sample_initial or (lambda key: draw(model.prior, key)),
         sample_process_noise=sample_process_noise
-        or (lambda key, inp: draw(model.noise_at(model.process_noise, inp), key)),
+        or (lambda key, inp, x=None: draw(model.noise_at(model.process_noise, inp, x), key)),
         sample_measurement_noise=sample_measurement_noise
         or (lambda key, inp: draw(model.measurement_noise, key)),
         position_dims=position_dims,

@@ -4,7 +4,7 @@
 * :func:`pcrb_mc` - expectations of eqs 5-8 over simulated trajectories, chunked.
 * :func:`pcrb_gmm` - Algorithms 1 and 2 with the nonlinearity switch (eqs 39-72).
 * :func:`noise_information` - Fisher information of a Gaussian-mixture noise, which replaces
-  ``Q^-1`` / ``R^-1`` when a noise is a mixture (``pcrb_linear``, ``pcrb_mc``).
+  ``Q^-1`` / ``R^-1`` when a noise is a mixture (``pcrb_linear``, ``pcrb_mc``, ``pcrb_gmm``).
 
 One convention for every entry point: the model is a :class:`PCRBModel` or a
 :class:`~gmjax.models.StateSpaceModel` (converted), and the result is a :class:`PCRBResult` whose

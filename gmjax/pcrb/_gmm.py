@@ -18,6 +18,17 @@ The state density is a fixed-capacity Gaussian mixture of ``K`` components. Each
 
 The whole recursion is one ``lax.scan`` compiled once per shape; ``threshold`` is a traced field, so
 changing it does not recompile.
+
+Gaussian-mixture noises (an extension; the paper's noises are Gaussian). With additive noise
+independent of the state the expectations of eqs 41-45 and 56-57 keep their form with ``Q^{-1}``
+and ``R^{-1}`` replaced by the noises' Fisher informations ``I_w``, ``I_v``
+(:func:`gmjax.pcrb.noise_information`, the same substitution as :func:`~gmjax.pcrb.pcrb_linear`
+and :func:`~gmjax.pcrb.pcrb_mc`): ``D11 = E[F^T I_w F]``, ``D12 = -E[F]^T I_w``,
+``D22 = I_w + E[H^T I_v H]``. The state density is propagated through the mixture process noise
+exactly per mapped component: each of the ``K`` mapped components is paired with each of the ``L``
+noise components (eqs 63-65 with the mixture in place of the split noise of eq 61; a
+``noise_library`` splits every noise component further) and Algorithm 3 merges the ``K L`` terms
+back to ``K``, in Algorithm 1 as well as in Algorithm 2.
 """
 
 from __future__ import annotations
@@ -31,8 +42,9 @@ import numpy as np
 from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike
-from gmjax.mixture import GaussianMixture, from_gaussian, pad, sanitize
+from gmjax.mixture import GaussianMixture, from_gaussian, normalize, pad, sanitize
 from gmjax.pcrb._model import PCRBModel, as_pcrb_model, prior_information
+from gmjax.pcrb._noise import noise_information
 from gmjax.pcrb._recursion import PCRBResult, bounds_from_information, inv_pd, pcrb_step
 from gmjax.quadrature import SigmaPoints, unscented
 from gmjax.reduction.kmeans import kmeans
@@ -244,6 +256,29 @@ def _propagate_small(model, gm, n, Q, config):
     return sanitize(GaussianMixture(gm.weights, fm, P + Q, gm.mask))
 
 
+def _pair_with_noise(fm: Array, P: Array, gm: GaussianMixture, noise_gm: GaussianMixture) -> GaussianMixture:
+    """Every mapped state component ``N(fm_i, P_i)`` plus every noise component ``N(u_l, Q_l)``:
+    ``N(fm_i + u_l, P_i + Q_l)`` with weight ``w_i gamma_l`` (eqs 63-65), ``K_r * B`` terms."""
+    Kr, d = fm.shape
+    B = noise_gm.capacity
+    means = (fm[:, None, :] + noise_gm.means[None, :, :]).reshape(Kr * B, d)  # eq 63 / 67
+    covs = (P[:, None] + noise_gm.covs[None]).reshape(Kr * B, d, d)  # eq 64 / 68
+    weights = (gm.weights[:, None] * noise_gm.weights[None, :]).reshape(Kr * B)  # eq 65
+    mask = (gm.mask[:, None] & noise_gm.mask[None, :]).reshape(Kr * B)
+    return sanitize(GaussianMixture(weights, means, gaussian.symmetrize(covs), mask))
+
+
+def _propagate_small_mixture(model, gm, n, noise_gm, config):
+    """Algorithm 1 with a Gaussian-mixture process noise: every component is mapped (eqs 51-55)
+    and paired with every noise component (eqs 63-65), and the ``K L`` terms are merged back to
+    ``K`` with Algorithm 3 (as Algorithm 2 does, without refining the state)."""
+    fm, P = _map_components(model, gm, n, config)
+    big = _pair_with_noise(fm, P, gm, noise_gm)
+    K = config.num_components
+    out, info = kmeans(big, K, max_iter=config.kmeans_max_iter, capacity=K)
+    return out, info.aux["iterations"], info.aux["converged"]
+
+
 def _propagate_large(model, gm, n, noise_gm, config):
     """Algorithm 2 propagation: refine, pair with the split noise (eqs 60-68), k-means to ``K``."""
     K = config.num_components
@@ -251,23 +286,34 @@ def _propagate_large(model, gm, n, noise_gm, config):
     if config.state_library is not None:
         refined = split_repeated(gm, config.state_library, config.state_directions)
     fm, P = _map_components(model, refined, n, config)
-    Kr, d = refined.capacity, refined.dim
-    B = noise_gm.capacity
-    means = (fm[:, None, :] + noise_gm.means[None, :, :]).reshape(Kr * B, d)  # eq 63 / 67
-    covs = (P[:, None] + noise_gm.covs[None]).reshape(Kr * B, d, d)  # eq 64 / 68
-    weights = (refined.weights[:, None] * noise_gm.weights[None, :]).reshape(Kr * B)  # eq 65
-    mask = jnp.repeat(refined.mask, B)
-    big = sanitize(GaussianMixture(weights, means, gaussian.symmetrize(covs), mask))
+    big = _pair_with_noise(fm, P, refined, noise_gm)
     out, info = kmeans(big, K, max_iter=config.kmeans_max_iter, capacity=K)
     return out, refined, info.aux["iterations"], info.aux["converged"]
 
 
-def _noise_mixture(Q: Array, config: GMMPCRBConfig) -> GaussianMixture:
-    d = Q.shape[-1]
-    g = from_gaussian(jnp.zeros(d, Q.dtype), Q, capacity=1)
+def _noise_mixture(Q: Array | GaussianMixture, config: GMMPCRBConfig) -> GaussianMixture:
+    """The process noise as the mixture of eq 61: ``N(0, Q)`` or the model's mixture (normalised),
+    each component split by ``config.noise_library`` when given."""
+    if isinstance(Q, GaussianMixture):
+        g = normalize(Q)
+    else:
+        g = from_gaussian(jnp.zeros(Q.shape[-1], Q.dtype), Q, capacity=1)
     if config.noise_library is None:
         return g
     return split_repeated(g, config.noise_library, config.noise_directions)
+
+
+def _cast_noise(noise: Array | GaussianMixture, dtype) -> Array | GaussianMixture:
+    if isinstance(noise, GaussianMixture):
+        return GaussianMixture(*(a if a.dtype == bool else jnp.asarray(a, dtype) for a in noise))
+    return jnp.asarray(noise, dtype)
+
+
+def _information(noise: Array | GaussianMixture) -> Array:
+    """``Q^{-1}`` of a covariance, or the Fisher information of a mixture (:func:`noise_information`)."""
+    if isinstance(noise, GaussianMixture):
+        return noise_information(noise)
+    return inv_pd(noise)
 
 
 def _validate_config(config: GMMPCRBConfig, model: PCRBModel) -> None:
@@ -314,11 +360,7 @@ def build_pcrb_gmm(
     config; each stage it calls is its own function above.)
     """
     model = as_pcrb_model(model)
-    if isinstance(model.Q, GaussianMixture) or isinstance(model.R, GaussianMixture):
-        raise ValueError(
-            "model: pcrb_gmm propagates Gaussian noise only (eqs 51-68); for Gaussian-mixture noise "
-            "use pcrb_mc or pcrb_linear"
-        )
+    mixture_q = isinstance(model.Q, GaussianMixture)
     config = GMMPCRBConfig() if config is None else config
     _validate_config(config, model)
     d = model.state_dim
@@ -335,10 +377,9 @@ def build_pcrb_gmm(
     def run(prior_gm: GaussianMixture, J0: Array, cfg: GMMPCRBConfig) -> PCRBResult:
         dtype = prior_gm.means.dtype
         K = cfg.num_components
-        Q = jnp.asarray(model.Q, dtype)
-        R = jnp.asarray(model.R, dtype)
-        Qi = inv_pd(Q)
-        Ri = inv_pd(R)
+        Q = _cast_noise(model.Q, dtype)
+        Qi = _information(Q)  # Q^-1, or the mixture's Fisher information
+        Ri = _information(_cast_noise(model.R, dtype))
         rule_c = SigmaPoints(
             jnp.asarray(rule.points, dtype), jnp.asarray(rule.wm, dtype), jnp.asarray(rule.wc, dtype)
         )
@@ -357,6 +398,9 @@ def build_pcrb_gmm(
             metric, _ = nonlinearity_metric(lambda x: model.jac_f(x, n), gm)
 
             def small(g):
+                if mixture_q:
+                    out, it, conv = _propagate_small_mixture(model, g, n, noise_gm, cfg)
+                    return out, metric, it, conv
                 return _propagate_small(model, g, n, Q, cfg), metric, zero_i, jnp.asarray(True)
 
             def large(g):
@@ -415,7 +459,8 @@ def pcrb_gmm(
     """GMM-quadrature PCRB (seed 002 Algorithms 1 and 2).
 
     Args:
-        model: a :class:`PCRBModel` (additive Gaussian noises, eqs 1-2).
+        model: a :class:`PCRBModel` or :class:`~gmjax.models.StateSpaceModel` (additive noises,
+            eqs 1-2); Gaussian or Gaussian-mixture noises (module docstring).
         prior_gm: the mixture approximating ``p(x_0)`` (e.g. the prior split by
             :func:`gmjax.split.split_repeated`); if its capacity exceeds ``K`` it is merged to ``K``
             with k-means (Algorithm 3), otherwise padded.

@@ -9,6 +9,7 @@ import numpy as np
 
 from gmjax._types import DTypeLike
 from gmjax.mixture import GaussianMixture
+from gmjax.models import library as lib
 from gmjax.models.base import Scenario, StateSpaceModel
 
 __all__ = ["bearings_only", "BEARINGS_PROCESS_NOISE", "BEARINGS_SENSORS", "turn_rate_schedule"]
@@ -17,6 +18,8 @@ __all__ = ["bearings_only", "BEARINGS_PROCESS_NOISE", "BEARINGS_SENSORS", "turn_
 BEARINGS_PROCESS_NOISE = ([0.55, 0.33, 0.12], [1.23, 0.26, 0.18], [7.56, 5.32, 2.02])
 # eq 51: sensor positions (s_x, s_y)
 BEARINGS_SENSORS = ((-1.0, -2.0), (1.0, 1.0))
+# the library orders a 2-D constant-velocity state [x, vx, y, vy]; the paper (eq 48) [x, y, vx, vy]
+_PAPER_ORDER = [0, 2, 1, 3]
 
 
 def turn_rate_schedule(n_steps: int = 500, dt: float = 0.01) -> np.ndarray:
@@ -82,12 +85,18 @@ def bearings_only(
       ``Q_1 = [[dt^3/3 I, dt^2/2 I], [dt^2/2 I, dt I]]`` (the discretisation of unit spectral
       density). ``zero_mean_noise=True`` drops the means (the mixture then only models heavy tails).
     * Bearings are not wrapped: on this trajectory sensor 1 always sees ``y > s_y`` and sensor 2
-      ``y < s_y``, so no bearing crosses ``+-pi``.
+      ``y < s_y``, so no bearing crosses ``+-pi`` (``angle_dims`` stays empty).
+
+    Built from :mod:`gmjax.models.library` pieces: ``A`` and ``Q_1`` are
+    :func:`~gmjax.models.library.constant_velocity` (unit diffusion) at ``dt`` in the paper's state
+    order, the two bearings :func:`~gmjax.models.library.bearings_only` of each sensor.
     """
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
-    I2 = np.eye(2)
-    A = np.block([[I2, dt * I2], [np.zeros((2, 2)), I2]])
-    Q1 = np.block([[dt**3 / 3 * I2, dt**2 / 2 * I2], [dt**2 / 2 * I2, dt * I2]])
+    cv = lib.constant_velocity(2, 1.0)
+    dt_f = jnp.asarray(dt, dtype)
+    assert cv.F is not None  # a linear motion model
+    A = np.asarray(cv.F(dt_f))[np.ix_(_PAPER_ORDER, _PAPER_ORDER)]
+    Q1 = np.asarray(cv.Q(dt_f))[np.ix_(_PAPER_ORDER, _PAPER_ORDER)]
     g = np.array([dt**2 / 2, dt**2 / 2, dt, dt])
     qw, qmu, qvar = BEARINGS_PROCESS_NOISE
     qmu = [0.0] * 3 if zero_mean_noise else qmu
@@ -95,14 +104,14 @@ def bearings_only(
     r = GaussianMixture.create([1.0], [[0.0, 0.0]], [bearing_std**2 * np.eye(2)], dtype=dtype)
     prior = GaussianMixture.create([1.0], [np.zeros(4)], [np.diag([0.1, 0.1, 10.0, 10.0])], dtype=dtype)
     A_j = jnp.asarray(A, dtype)
-    sensors = jnp.asarray(BEARINGS_SENSORS, dtype)
+    sensors = [lib.bearings_only((0, 1), bearing_std**2, s) for s in BEARINGS_SENSORS]
     rates = jnp.asarray(turn_rate_schedule(n_steps, dt), dtype)
 
     def f(x, t):
         return A_j @ x
 
     def h(x, t):
-        return jnp.arctan2(x[1] - sensors[:, 1], x[0] - sensors[:, 0])
+        return jnp.concatenate([sensor.h(x) for sensor in sensors])
 
     def truth_f(x, t):
         return _turn(x, rates[jnp.clip(t - 1, 0, n_steps - 1)], dt)

@@ -12,6 +12,7 @@ import numpy as np
 from gmjax import mixture as gmm
 from gmjax._types import ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture
+from gmjax.models import library as lib
 from gmjax.models.base import Scenario, StateSpaceModel
 
 __all__ = [
@@ -68,6 +69,17 @@ UWB_NOISES = {
 }
 
 
+def _rwv_matrices(dt: float, dtype: DTypeLike) -> tuple[jax.Array, jax.Array]:
+    """``F = [[1, dt], [0, 1]]`` and ``H = [1, 0]`` of eqs 18-19: the 1-D
+    :func:`~gmjax.models.library.constant_velocity` transition and the
+    :func:`~gmjax.models.library.cartesian_position` measurement of the position (exact entries)."""
+    F_of_dt = lib.constant_velocity(1, 1.0).F
+    assert F_of_dt is not None  # a linear motion model
+    F = F_of_dt(jnp.asarray(dt, dtype))
+    H = jnp.asarray(lib.cartesian_position((0,), 2).H, dtype)
+    return F, H
+
+
 def random_walk_velocity(
     process: ScalarGM,
     measurement: ScalarGM,
@@ -101,8 +113,7 @@ def random_walk_velocity(
     )
     r = GaussianMixture.create(measurement.weights, measurement.means, measurement.variances, dtype=dtype)
     prior = GaussianMixture.create([1.0], [[0.0, 0.0]], [np.asarray(prior_cov, float)], dtype=dtype)
-    F = jnp.asarray([[1.0, dt], [0.0, 1.0]], dtype)
-    H = jnp.asarray([[1.0, 0.0]], dtype)
+    F, H = _rwv_matrices(dt, dtype)
     pw = jnp.log(jnp.asarray(process.weights, dtype))
     pm = jnp.asarray(process.means, dtype)
     ps = jnp.sqrt(jnp.asarray(process.variances, dtype))
@@ -247,8 +258,7 @@ def rwv_model(
     prior = GaussianMixture.from_arrays(
         jnp.ones((1,), dtype), jnp.zeros((1, 2), dtype), jnp.asarray(prior_cov, dtype)[None]
     )
-    F = jnp.asarray([[1.0, dt], [0.0, 1.0]], dtype)
-    H = jnp.asarray([[1.0, 0.0]], dtype)
+    F, H = _rwv_matrices(dt, dtype)
     return StateSpaceModel(
         f=lambda x, t: F @ x,
         h=lambda x, t: H @ x,
@@ -280,7 +290,7 @@ def simulate_labeled(
     dtype = jnp.zeros(()).dtype if dtype is None else dtype
     p = _as_arrays(process, dtype)
     r = _as_arrays(measurement, dtype)
-    F = jnp.asarray([[1.0, dt], [0.0, 1.0]], dtype)
+    F, _ = _rwv_matrices(dt, dtype)
     g = jnp.asarray([dt, 1.0], dtype)
     k0, ks = jax.random.split(key)
     L0 = jnp.linalg.cholesky(jnp.asarray(prior_cov, dtype))
