@@ -24,6 +24,7 @@ __all__ = [
     "CholeskyResult",
     "symmetrize",
     "safe_cholesky",
+    "repair_spd",
     "solve_lower",
     "logdet",
     "logpdf",
@@ -134,14 +135,31 @@ def safe_cholesky(cov: ArrayLike) -> CholeskyResult:
     """
     sym = symmetrize(cov)
     d = sym.shape[-1]
+    repaired, jitter = _repair_jitter(sym)
+    factor = _cholesky(sym + jitter * jnp.eye(d, dtype=sym.dtype))
+    return CholeskyResult(factor, repaired, jitter)
+
+
+def _repair_jitter(sym: Array) -> tuple[Array, Array]:
+    """``(repaired, jitter)`` of :func:`safe_cholesky` for a symmetric ``sym`` (stopped gradients)."""
     const = jax.lax.stop_gradient(sym)
     repaired = ~jnp.all(jnp.isfinite(_cholesky(const)))
     scale = jnp.mean(jnp.abs(jnp.diagonal(const)))
     scale = jnp.where(scale > 0, scale, 1.0)  # an all-zero covariance has no scale of its own
     shift = 2.0 * _gershgorin_shift(const) + jnp.sqrt(jnp.finfo(sym.dtype).eps) * scale
-    jitter = jnp.where(repaired, shift, jnp.zeros((), sym.dtype))
-    factor = _cholesky(sym + jitter * jnp.eye(d, dtype=sym.dtype))
-    return CholeskyResult(factor, repaired, jitter)
+    return repaired, jnp.where(repaired, shift, jnp.zeros((), sym.dtype))
+
+
+def repair_spd(cov: ArrayLike) -> tuple[Matrix, Array]:
+    """Symmetrise ``cov``; if it is not numerically positive definite, add :func:`safe_cholesky`'s
+    jitter to its diagonal (the matrix that function factorises). One Cholesky factorisation.
+
+    Returns:
+        ``(cov, repaired)``.
+    """
+    sym = symmetrize(cov)
+    repaired, jitter = _repair_jitter(sym)
+    return sym + jitter * jnp.eye(sym.shape[-1], dtype=sym.dtype), repaired
 
 
 def _chol(cov: ArrayLike) -> Matrix:

@@ -128,15 +128,13 @@ safe_chol = gaussian.safe_cholesky
 
 
 def repair_cov(cov: Matrix) -> tuple[Matrix, Array]:
-    """Symmetrise ``cov``; if it is not numerically PD, replace it by ``L L^T`` of the safe factor.
+    """Symmetrise ``cov``; if it is not numerically PD, add the safe factor's jitter to the diagonal
+    (:func:`gmjax.gaussian.repair_spd`).
 
     Returns:
         ``(cov, repaired)``.
     """
-    cov = gaussian.symmetrize(cov)
-    res = safe_chol(cov)
-    fixed = res.factor @ res.factor.T
-    return jnp.where(res.repaired, fixed, cov), res.repaired
+    return gaussian.repair_spd(cov)
 
 
 def kalman_gain(Pxz: Matrix, L_S: Matrix) -> Matrix:
