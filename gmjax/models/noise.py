@@ -31,14 +31,19 @@ def glint(
 ) -> Array:
     """One glint-noise draw (seed 000 eqs 46–47): ``(1 - eps) N(loc, gauss_std^2) + eps Laplace(loc, eta)``.
 
-    Each component of a vector draw switches independently with probability ``frequency``.
+    Each component of a vector draw switches independently with probability ``frequency``. The draw
+    has ``loc``'s floating dtype.
     """
-    loc = jnp.asarray(loc, float)
-    shape = jnp.broadcast_shapes(loc.shape, jnp.shape(gauss_std), jnp.shape(laplace_scale))
+    loc = jnp.asarray(loc)
+    if not jnp.issubdtype(loc.dtype, jnp.floating):
+        loc = loc.astype(float)
+    dtype = loc.dtype  # the draw has loc's dtype (a float32 scenario stays float32 under x64)
+    gauss_std, laplace_scale = jnp.asarray(gauss_std, dtype), jnp.asarray(laplace_scale, dtype)
+    shape = jnp.broadcast_shapes(loc.shape, gauss_std.shape, laplace_scale.shape)
     k_switch, k_gauss, k_lap = jax.random.split(key, 3)
-    gauss = loc + jnp.asarray(gauss_std) * jax.random.normal(k_gauss, shape, loc.dtype)
+    gauss = loc + gauss_std * jax.random.normal(k_gauss, shape, dtype)
     lap = laplace(k_lap, loc, laplace_scale, shape)
-    use_laplace = jax.random.uniform(k_switch, shape) < frequency
+    use_laplace = jax.random.uniform(k_switch, shape, dtype) < frequency
     return jnp.where(use_laplace, lap, gauss)
 
 
