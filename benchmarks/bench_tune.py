@@ -219,11 +219,13 @@ def pcm_section(args) -> dict:
 def agsf_section(args) -> dict | None:
     try:
         from gmjax.filters.agsf import AGSFConfig, build_agsf
-        from gmjax.scenarios.gamma_system import gamma_system
+        from gmjax.scenarios.gamma_system import GAMMA_SCALE_MATLAB, gamma_system
     except ImportError as e:  # the adaptive filter is issue 7's
         print(f"[AGSSCKF] skipped: {e}")
         return None
-    sc = gamma_system()
+    # the reading this tuning study was designed and committed on (Ga(3, 2) as shape 3, scale 2); the
+    # study default became scale sqrt(2) (issue 19), which changes the ψ_th landscape
+    sc = gamma_system(gamma_scale=GAMMA_SCALE_MATLAB)
     tau = args.psi_temperature
     gate = soft_split_gate(tau, relative=True)
 
