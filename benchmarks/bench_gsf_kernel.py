@@ -1,0 +1,216 @@
+"""gmjax's Gaussian sum filters against a minimal hand-written JAX kernel of the same work (issue 17).
+
+For each case (NL-GSF and R-GSF; the 1-D jump system of seed 000 and the 4-D range-bearing system of
+seed 000 Table 8; float64 and float32) the same ``N`` simulated measurement sequences are filtered by
+
+* gmjax: ``jit(vmap(run(build_gsf(...))))`` returning the estimates and their covariances, and
+* the minimal kernel of ``benchmarks/reference/gsf_minimal.py`` (plain ``jax.numpy``: no mixture type,
+  masks, flags or validation),
+
+in the same process, alternating, and the benchmark prints compile time apart from run time, µs per
+run-step, the ratio gmjax / minimal, and the largest difference of the estimates (float64: must be
+below 1e-9). ``track_ise=True`` (the per-step ISE diagnostic, opt-in) is timed as a separate gmjax row
+in 1-D.
+
+Usage: python benchmarks/bench_gsf_kernel.py [--runs 1000] [--runs-runnalls 200] [--repeats 5] [--quick]
+       [--systems 1-D 4-D] [--filters prune runnalls] [--note "..."]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def _log_mix(gm, capacity: int | None = None):
+    """``(log_w, means, covs)`` of a GaussianMixture, padded to ``capacity`` with ``-inf`` log weights
+    (the padded slots copy the first component)."""
+    w = np.asarray(gm.weights, np.float64) * np.asarray(gm.mask)
+    w = w / w.sum()
+    m, P = np.asarray(gm.means), np.asarray(gm.covs)
+    with np.errstate(divide="ignore"):
+        log_w = np.where(np.asarray(gm.mask), np.log(w), -np.inf)
+    if capacity is not None and capacity > len(w):
+        pad = capacity - len(w)
+        log_w = np.concatenate([log_w, np.full(pad, -np.inf)])
+        # dead slots copy the first component (weight 0): their arithmetic stays finite (e.g. a range
+        # measurement's Jacobian at the origin would be NaN, and 0 * NaN poisons the moments)
+        m = np.concatenate([m, np.broadcast_to(m[0], (pad,) + m.shape[1:])])
+        P = np.concatenate([P, np.broadcast_to(P[0], (pad,) + P.shape[1:])])
+    dtype = gm.means.dtype
+    return tuple(jnp.asarray(a, dtype) for a in (log_w, m, P))
+
+
+def _scenario(system: str, dtype):
+    from gmjax.scenarios.glint_range_bearing import range_bearing
+    from gmjax.scenarios.jump_system import jump_system
+
+    if system == "1-D":
+        return jump_system(dtype=dtype)
+    return range_bearing(duration=1.0, dtype=dtype)  # 100 steps of the 4-D Table 8 system
+
+
+def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: int = 20) -> list[dict]:
+    """Time gmjax and the minimal kernel on one case; returns one row per gmjax variant."""
+    from _common import time_jax
+    from reference.gsf_minimal import minimal_gsf
+
+    from gmjax.filters import run
+    from gmjax.filters.gsf import build_gsf
+    from gmjax.models.base import simulate
+    from gmjax.reduction import PruneTop, Runnalls
+
+    sc = _scenario(system, dtype)
+    model = sc.model
+    keys = jax.random.split(jax.random.key(0), n_runs)
+    _, zs, ts = jax.jit(jax.vmap(lambda k: simulate(sc, k)))(keys)
+    ts = ts[0]
+    minimal = minimal_gsf(
+        model.f,
+        model.h,
+        _log_mix(model.prior, capacity),
+        _log_mix(model.process_noise),
+        _log_mix(model.measurement_noise),
+        capacity,
+        reducer,
+    )
+    minimal_fn = jax.jit(jax.vmap(minimal, (0, None)))
+    red = PruneTop(num_out=capacity) if reducer == "prune" else Runnalls(num_out=capacity)
+    rows = []
+    ref = time_jax(minimal_fn, zs, ts, repeats=repeats)
+    ref_est = np.asarray(minimal_fn(zs, ts)[0])
+    n_steps = zs.shape[1]
+    for track_ise in (False, True) if system == "1-D" else (False,):  # the 4-D ISE is too slow to time
+        filt = build_gsf(model, "ekf", red, capacity=capacity, track_ise=track_ise)
+
+        def gm_run(z, filt=filt):
+            info = run(filt, z, ts)[1]
+            return info.mean, info.cov, info.extra.get("ise")  # the ISE, when tracked, is consumed
+
+        fn = jax.jit(jax.vmap(gm_run))
+        t_gm = time_jax(fn, zs, repeats=repeats)
+        ref_again = time_jax(minimal_fn, zs, ts, repeats=repeats)  # alternate: load drifts
+        ref_min = min(ref["run_min_s"], ref_again["run_min_s"])
+        est = np.asarray(fn(zs)[0])
+        rows.append(
+            {
+                "system": system,
+                "filter": {"prune": "NL-GSF", "runnalls": "R-GSF"}[reducer],
+                "dtype": jnp.dtype(dtype).name,
+                "track_ise": track_ise,
+                "n_runs": n_runs,
+                "n_steps": n_steps,
+                "gmjax_compile_s": t_gm["compile_s"],
+                "minimal_compile_s": ref["compile_s"],
+                "gmjax_us_per_run_step": 1e6 * t_gm["run_min_s"] / (n_runs * n_steps),
+                "minimal_us_per_run_step": 1e6 * ref_min / (n_runs * n_steps),
+                "ratio": t_gm["run_min_s"] / ref_min,
+                "max_abs_diff": float(np.max(np.abs(est - ref_est))),
+            }
+        )
+        r = rows[-1]
+        print(
+            f"{system} {r['filter']} {r['dtype']} ise={track_ise}: gmjax {r['gmjax_us_per_run_step']:.3f} "
+            f"µs/run-step (compile {r['gmjax_compile_s']:.1f} s), minimal {r['minimal_us_per_run_step']:.3f} "
+            f"(compile {r['minimal_compile_s']:.1f} s), ratio {r['ratio']:.2f}, "
+            f"max |Δ est| {r['max_abs_diff']:.1e}",
+            flush=True,
+        )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=1000)
+    parser.add_argument(
+        "--runs-runnalls", type=int, default=200, help="runs of the R-GSF cases (its greedy loop is slow)"
+    )
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--quick", action="store_true", help="100 runs, 2 repeats, float64 only")
+    parser.add_argument("--systems", nargs="+", default=["1-D", "4-D"])
+    parser.add_argument("--filters", nargs="+", default=["prune", "runnalls"])
+    parser.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
+    parser.add_argument("--note", default="")
+    args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
+    from _common import markdown_table, write_results
+
+    n_runs, repeats = (100, 2) if args.quick else (args.runs, args.repeats)
+    dtypes = [jnp.float64] if args.quick else [jnp.dtype(name).type for name in args.dtypes]
+    with open("/proc/loadavg") as f:
+        load_before = f.read().split()[:3]
+    rows: list[dict] = []
+    failed: list[str] = []
+    for system in args.systems:
+        for reducer in args.filters:
+            for dtype in dtypes:
+                runs = min(n_runs, args.runs_runnalls) if reducer == "runnalls" else n_runs
+                try:
+                    rows += case(system, reducer, dtype, runs, repeats)
+                except TypeError as e:  # e.g. a scenario that does not keep float32 under x64
+                    failed.append(f"{system} {reducer} {jnp.dtype(dtype).name}: {str(e).splitlines()[0]}")
+                    print(f"FAILED {failed[-1]}", flush=True)
+    with open("/proc/loadavg") as f:
+        load_after = f.read().split()[:3]
+    header = [
+        "system",
+        "filter",
+        "dtype",
+        "ISE diag.",
+        "gmjax µs/run-step",
+        "minimal µs/run-step",
+        "gmjax / minimal",
+        "gmjax compile s",
+        "minimal compile s",
+        "max |Δ estimate|",
+    ]
+    table = [
+        [
+            r["system"],
+            r["filter"],
+            r["dtype"],
+            "on" if r["track_ise"] else "off",
+            r["gmjax_us_per_run_step"],
+            r["minimal_us_per_run_step"],
+            r["ratio"],
+            r["gmjax_compile_s"],
+            r["minimal_compile_s"],
+            f"{r['max_abs_diff']:.1e}",
+        ]
+        for r in rows
+    ]
+    md = (
+        "# gmjax's GSF against a minimal hand-written JAX kernel\n\n"
+        f"{n_runs} runs (R-GSF: {min(n_runs, args.runs_runnalls)}), `jit(vmap(...))` over runs, best of"
+        f" {repeats} after compilation; the minimal kernel"
+        " (`benchmarks/reference/gsf_minimal.py`) is timed before and after each gmjax row and the faster"
+        " of the two is used. 1-D: seed 000 jump system (120 steps, 3 × 1 noise components); 4-D: seed 000"
+        " Table 8 range-bearing system (100 steps, 1 × 4). Capacity 20. Load average before / after: "
+        f"{' '.join(load_before)} / {' '.join(load_after)}.\n\n" + markdown_table(header, table) + "\n"
+    )
+    if failed:
+        md += "\nCases that could not run: " + "; ".join(failed) + "\n"
+    if args.note:
+        md += f"\nNote: {args.note}\n"
+    data = {
+        "rows": rows,
+        "failed": failed,
+        "note": args.note,
+        "loadavg_before": load_before,
+        "loadavg_after": load_after,
+    }
+    path = write_results("gsf_kernel", data, md, quick=args.quick)
+    print(md)
+    print(f"wrote {path}")
+    return data
+
+
+if __name__ == "__main__":
+    main()
