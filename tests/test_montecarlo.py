@@ -338,10 +338,12 @@ def test_bad_arguments_raise():
     sc32 = jump_system(n_steps=5, dtype=jnp.float32)
     with pytest.raises(ValueError, match="filter: its params hold.*float64"):
         montecarlo.monte_carlo(filt, sc32, 2, key, progress=False)
+    filt32 = build_gsf(sc32.model, "ekf", PruneTop(num_out=4), capacity=4)
+    r32 = montecarlo.monte_carlo(filt32, sc32, 2, key, progress=False)  # float32 under x64 stays float32
+    assert r32.config["dtype"] == "float32" and np.isfinite(r32.armse)
+    promotes = sc32._replace(sample_process_noise=lambda key, t: jnp.zeros(1, jnp.float64))
     with pytest.raises(ValueError, match="scenario: 'jump' .float32. cannot be simulated"):
-        montecarlo.monte_carlo(
-            build_gsf(sc32.model, "ekf", PruneTop(num_out=4), capacity=4), sc32, 2, key, progress=False
-        )
+        montecarlo.monte_carlo(filt32, promotes, 2, key, progress=False)
 
 
 def test_same_numbers_on_four_forced_host_devices(tmp_path):
