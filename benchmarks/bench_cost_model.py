@@ -113,6 +113,25 @@ def measure(name: str, N: int, K: int, d: int, repeats: int) -> dict:
     }
 
 
+def _measure_in_subprocess(name: str, N: int, K: int, d: int, repeats: int, timeout: float) -> dict | None:
+    """:func:`measure` in a fresh process (``None`` if it gives no result within ``timeout`` seconds).
+
+    A fresh process per configuration: one long process compiling many programs hung twice in the XLA
+    CPU runtime (every thread waiting on a futex); a hung configuration is recorded and skipped.
+    """
+    import json
+    import subprocess
+
+    cmd = [sys.executable, __file__, "--one", json.dumps([name, N, K, d, repeats])]
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return None
+    if res.returncode != 0:
+        raise SystemExit(f"{name} N={N} K={K} d={d} failed:\n{res.stderr[-3000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
 def _predicted(done: list[tuple[float, float]], size: float) -> float:
     """Run seconds at ``size`` extrapolated from the last two points (growth exponent at least 1)."""
     (s1, t1) = done[-1]
@@ -137,9 +156,16 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--max-seconds", type=float, default=30.0, help="skip the sizes whose run is predicted to take longer"
     )
+    parser.add_argument("--timeout", type=float, default=300.0, help="seconds per configuration")
     parser.add_argument("--note", default="")
+    parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
+    if args.one is not None:
+        import json
+
+        print(json.dumps(measure(*json.loads(args.one))))
+        return {}
     from _common import markdown_table, write_results
 
     axes = QUICK_AXES if args.quick else AXES
@@ -147,11 +173,19 @@ def main(argv: list[str] | None = None) -> dict:
     with open("/proc/loadavg") as f:
         load_before = f.read().split()[:3]
     rows: list[dict] = []
+    hung: list[str] = []
     for name in FILTERS:
         for axis, sizes in axes.items():
             for size in sizes:
                 cfg = dict(base, **{axis: size})
-                r = measure(name, cfg["N"], cfg["K"], cfg["d"], args.repeats)
+                r = _measure_in_subprocess(name, cfg["N"], cfg["K"], cfg["d"], args.repeats, args.timeout)
+                if r is None:
+                    hung.append(f"{name} N={cfg['N']} K={cfg['K']} d={cfg['d']}")
+                    print(
+                        f"{name:15s} {axis}={size}: no result within {args.timeout:.0f} s (skipped)",
+                        flush=True,
+                    )
+                    break
                 r["axis"] = axis
                 rows.append(r)
                 print(
@@ -192,11 +226,14 @@ def main(argv: list[str] | None = None) -> dict:
         + markdown_table(header, table)
         + "\n"
     )
+    if hung:
+        md += "\nNo result within the timeout (skipped with the larger sizes): " + "; ".join(hung) + "\n"
     if args.note:
         md += f"\nNote: {args.note}\n"
     data = {
         "rows": rows,
         "growth": slopes,
+        "hung": hung,
         "note": args.note,
         "loadavg_before": load_before,
         "loadavg_after": load_after,
