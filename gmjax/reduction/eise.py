@@ -324,29 +324,13 @@ def _newton(fun, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
     small value") — *converged* — or when no halving decreases the function or a derivative is not
     finite — *failed*.
 
-    The value runs in ``while_loop`` s that stop as soon as the search is done (under ``vmap``: when
-    every member of the batch is done) and the backtracking as soon as a step is accepted; the
-    derivatives come from the same iteration with a fixed number of steps (``lax.scan``, reverse-mode
-    differentiable) through a ``custom_jvp``. Both take identical steps, so values and gradients are
-    those of the fixed-count iteration.
-
     Returns:
         ``(λ, converged, iterations)``.
     """
-    f, consts = jax.closure_convert(fun, lam0)
-    return _newton_search(f, steps, n_backtrack, lam0, lo, hi, tol, radius, *consts)
-
-
-def _newton_iterate(f, steps, n_backtrack, early_exit, lam0, lo, hi, tol, radius, *consts):
-    """The iteration of :func:`_newton` on ``f(lam, *consts)``; ``early_exit`` picks the loops."""
-
-    def fun(lam):
-        return f(lam, *consts)
-
     grad = jax.grad(fun)
 
-    def newton_step(carry):
-        lam, f_lam, done, ok, it = carry
+    def body(carry, _):
+        lam, f, done, ok, it = carry
         g, h = jax.jvp(grad, (lam,), (jnp.ones_like(lam),))  # gradient and Hessian, one trace
         finite = jnp.isfinite(g) & jnp.isfinite(h)
         convex = finite & (h > 0)
@@ -357,50 +341,27 @@ def _newton_iterate(f, steps, n_backtrack, early_exit, lam0, lo, hi, tol, radius
             found, lam_b, f_b = acc
             cand = jnp.clip(lam - raw * 0.5**k, lo, hi)
             f_c = fun(cand)
-            better = (~found) & jnp.isfinite(f_c) & (f_c <= f_lam)
+            better = (~found) & jnp.isfinite(f_c) & (f_c <= f)
             return (found | better, jnp.where(better, cand, lam_b), jnp.where(better, f_c, f_b))
 
-        start = (jnp.zeros((), bool), lam, f_lam)
-        if early_exit:  # stop at the first accepted halving (later ones change nothing)
-            _, (found, lam_new, f_new) = jax.lax.while_loop(
-                lambda c: (~c[1][0]) & (c[0] <= n_backtrack),
-                lambda c: (c[0] + 1, try_scale(c[0], c[1])),
-                (jnp.zeros((), jnp.int32), start),
-            )
-        else:
-            found, lam_new, f_new = jax.lax.fori_loop(0, n_backtrack + 1, try_scale, start)
+        found, lam_new, f_new = jax.lax.fori_loop(
+            0, n_backtrack + 1, try_scale, (jnp.zeros((), bool), lam, f)
+        )
         found = found & finite
-        small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f_lam - f_new) <= tol * jnp.abs(f_lam))
+        small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f - f_new) <= tol * jnp.abs(f))
         active = ~done
         converged = found & small
         failed = ~found
         lam_next = jnp.where(active & found, lam_new, lam)
-        f_next = jnp.where(active & found, f_new, f_lam)
+        f_next = jnp.where(active & found, f_new, f)
         done_next = done | (active & (converged | failed))
         ok_next = jnp.where(active, converged, ok)
-        return (lam_next, f_next, done_next, ok_next, it + active.astype(jnp.int32))
+        return (lam_next, f_next, done_next, ok_next, it + active.astype(jnp.int32)), None
 
-    init = (lam0, fun(lam0), jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
-    if early_exit:  # a finished search's steps change nothing: stop when done
-        _, (lam, _, _, ok, it) = jax.lax.while_loop(
-            lambda c: (~c[1][2]) & (c[0] < steps),
-            lambda c: (c[0] + 1, newton_step(c[1])),
-            (jnp.zeros((), jnp.int32), init),
-        )
-    else:
-        (lam, _, _, ok, it), _ = jax.lax.scan(lambda c, _: (newton_step(c), None), init, None, length=steps)
+    f0 = fun(lam0)
+    init = (lam0, f0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+    (lam, _, _, ok, it), _ = jax.lax.scan(body, init, None, length=steps)
     return lam, ok, it
-
-
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
-def _newton_search(f, steps, n_backtrack, lam0, lo, hi, tol, radius, *consts):
-    return _newton_iterate(f, steps, n_backtrack, True, lam0, lo, hi, tol, radius, *consts)
-
-
-@_newton_search.defjvp
-def _newton_search_jvp(f, steps, n_backtrack, primals, tangents):
-    iterate = partial(_newton_iterate, f, steps, n_backtrack, False)
-    return jax.jvp(iterate, primals, tangents)
 
 
 @partial(
