@@ -12,6 +12,7 @@ Two families, both dtype-generic and jit/vmap/grad-safe:
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -26,6 +27,7 @@ __all__ = [
     "safe_cholesky",
     "repair_spd",
     "solve_lower",
+    "cho_solve_small",
     "logdet",
     "logpdf",
     "pdf",
@@ -93,6 +95,24 @@ def _cholesky(a: Array) -> Array:
     return jnp.stack(rows, -2)
 
 
+def _is_positive_definite(a: Array) -> Array:
+    """``()`` bool: the Cholesky factorisation of symmetric ``a`` succeeds (every pivot positive and
+    finite). For ``d <= 6`` only the pivots of the unrolled elimination are formed (no factor)."""
+    d = a.shape[-1]
+    if d > _UNROLL_MAX_DIM:
+        return jnp.all(jnp.isfinite(jnp.linalg.cholesky(a)))
+    cols: list[list[Array]] = [[None] * d for _ in range(d)]  # type: ignore[list-item]
+    zero = jnp.zeros_like(a[..., 0, 0])
+    ok = jnp.ones(a.shape[:-2], bool)
+    for j in range(d):
+        diag = a[..., j, j] - sum((cols[j][k] ** 2 for k in range(j)), zero)
+        ok = ok & (diag > 0) & jnp.isfinite(diag)
+        ljj = jnp.sqrt(jnp.where(diag > 0, diag, 1.0))
+        for i in range(j + 1, d):
+            cols[i][j] = (a[..., i, j] - sum((cols[i][k] * cols[j][k] for k in range(j)), zero)) / ljj
+    return ok  # a non-finite entry makes some pivot NaN or -inf
+
+
 def solve_lower(L: ArrayLike, b: ArrayLike) -> Array:
     """Solve ``L x = b`` for lower-triangular ``L`` ``(d, d)`` and ``b`` ``(d,)`` or ``(d, n)``."""
     L = jnp.asarray(L)
@@ -107,6 +127,31 @@ def solve_lower(L: ArrayLike, b: ArrayLike) -> Array:
             acc = acc - L[i, k] * xs[k]
         xs.append(acc / L[i, i])
     return jnp.stack(xs, 0)
+
+
+def _solve_lower_transposed(L: Array, b: Array) -> Array:
+    """Solve ``L^T x = b`` (back substitution, unrolled; ``d <= 6``)."""
+    d = L.shape[-1]
+    xs: list[Array] = [None] * d  # type: ignore[list-item]
+    for i in reversed(range(d)):
+        acc = b[i]
+        for k in range(i + 1, d):
+            acc = acc - L[k, i] * xs[k]
+        xs[i] = acc / L[i, i]
+    return jnp.stack(xs, 0)
+
+
+def cho_solve_small(L: ArrayLike, b: ArrayLike) -> Array:
+    """Solve ``(L L^T) x = b`` for a lower Cholesky factor ``L`` ``(d, d)`` and ``b`` ``(d,)`` or ``(d, n)``.
+
+    ``jax.scipy.linalg.cho_solve``'s values; for ``d <= 6`` both triangular solves are unrolled into
+    elementwise operations (on CPU a batched ``cho_solve`` calls LAPACK once per tiny matrix).
+    """
+    L = jnp.asarray(L)
+    b = jnp.asarray(b)
+    if L.shape[-1] > _UNROLL_MAX_DIM:
+        return cho_solve((L, True), b)
+    return _solve_lower_transposed(L, solve_lower(L, b))
 
 
 def _gershgorin_shift(s: Array) -> Array:
@@ -141,12 +186,24 @@ def safe_cholesky(cov: ArrayLike) -> CholeskyResult:
 
 
 def _repair_jitter(sym: Array) -> tuple[Array, Array]:
-    """``(repaired, jitter)`` of :func:`safe_cholesky` for a symmetric ``sym`` (stopped gradients)."""
+    """``(repaired, jitter)`` of :func:`safe_cholesky` for a symmetric ``sym`` (stopped gradients).
+
+    For ``d <= 6`` the Gershgorin shift and the scale are unrolled over the entries: XLA's CPU
+    reductions over a trailing ``(d, d)`` pair cost more than the arithmetic.
+    """
     const = jax.lax.stop_gradient(sym)
-    repaired = ~jnp.all(jnp.isfinite(_cholesky(const)))
-    scale = jnp.mean(jnp.abs(jnp.diagonal(const)))
+    repaired = ~_is_positive_definite(const)
+    d = const.shape[-1]
+    if d > _UNROLL_MAX_DIM:
+        scale = jnp.mean(jnp.abs(jnp.diagonal(const)))
+        gershgorin = _gershgorin_shift(const)
+    else:
+        absolute = [[jnp.abs(const[..., i, j]) for j in range(d)] for i in range(d)]
+        scale = functools.reduce(jnp.add, [absolute[i][i] for i in range(d)]) / d
+        rows = [sum(absolute[i][j] for j in range(d) if j != i) - const[..., i, i] for i in range(d)]
+        gershgorin = functools.reduce(jnp.maximum, rows, jnp.zeros_like(const[..., 0, 0]))
     scale = jnp.where(scale > 0, scale, 1.0)  # an all-zero covariance has no scale of its own
-    shift = 2.0 * _gershgorin_shift(const) + jnp.sqrt(jnp.finfo(sym.dtype).eps) * scale
+    shift = 2.0 * gershgorin + jnp.sqrt(jnp.finfo(sym.dtype).eps) * scale
     return repaired, jnp.where(repaired, shift, jnp.zeros((), sym.dtype))
 
 

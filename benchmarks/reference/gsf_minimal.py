@@ -42,6 +42,30 @@ def _chol(S):
     return jnp.stack([jnp.stack(row, -1) for row in L], -2)
 
 
+def _solve_lower(L, b):
+    """``L^{-1} b`` for ``b (d,)`` or ``(d, n)``: forward substitution, unrolled for ``d <= 4`` (a batched
+    ``solve_triangular`` calls LAPACK once per tiny matrix on CPU)."""
+    d = L.shape[-1]
+    if d > 4:
+        return solve_triangular(L, b, lower=True)
+    xs = []
+    for i in range(d):
+        xs.append((b[i] - sum((L[i, k] * xs[k] for k in range(i)), jnp.zeros_like(b[i]))) / L[i, i])
+    return jnp.stack(xs, 0)
+
+
+def _cho_solve(L, b):
+    """``(L L^T)^{-1} b``: forward then back substitution, unrolled for ``d <= 4``."""
+    d = L.shape[-1]
+    if d > 4:
+        return cho_solve((L, True), b)
+    y = _solve_lower(L, b)
+    xs = [None] * d
+    for i in reversed(range(d)):
+        xs[i] = (y[i] - sum((L[k, i] * xs[k] for k in range(i + 1, d)), jnp.zeros_like(y[i]))) / L[i, i]
+    return jnp.stack(xs, 0)
+
+
 def _logdet(P):
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(_chol(P), axis1=-2, axis2=-1)), -1)
 
@@ -68,10 +92,10 @@ def _update(h, H, log_w, m, P, z, t, r: Mix):
         S = H_i @ P_i @ H_i.T + rP_j
         L = _chol(S)
         y = z - hm_i - rm_j
-        gain = cho_solve((L, True), H_i @ P_i).T
+        gain = _cho_solve(L, H_i @ P_i).T
         A = jnp.eye(m_i.shape[0], dtype=P_i.dtype) - gain @ H_i
         cov = A @ P_i @ A.T + gain @ rP_j @ gain.T
-        r_ = solve_triangular(L, y, lower=True)
+        r_ = _solve_lower(L, y)
         ll = -0.5 * (y.shape[0] * _LOG_2PI + r_ @ r_) - jnp.sum(jnp.log(jnp.diagonal(L)))
         return m_i + gain @ y, 0.5 * (cov + cov.T), ll
 

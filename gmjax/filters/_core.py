@@ -18,7 +18,6 @@ from typing import Any, Callable, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import cho_solve, solve_triangular
 
 from gmjax import gaussian
 from gmjax import mixture as gmm
@@ -118,7 +117,7 @@ def is_missing(z: Array) -> Array:
 
 def loglik_from_chol(y: Vector, L: Matrix) -> Array:
     """``log N(y; 0, L L^T)`` from a lower Cholesky factor (diagonal sign-agnostic)."""
-    r = solve_triangular(L, y, lower=True)
+    r = gaussian.solve_lower(L, y)
     m = y.shape[-1]
     return -0.5 * (m * _LOG_2PI + jnp.sum(r * r)) - jnp.sum(jnp.log(jnp.abs(jnp.diagonal(L))))
 
@@ -139,7 +138,7 @@ def repair_cov(cov: Matrix) -> tuple[Matrix, Array]:
 
 def kalman_gain(Pxz: Matrix, L_S: Matrix) -> Matrix:
     """``K = Pxz S^{-1}`` with ``S = L_S L_S^T`` (two triangular solves, no inverse)."""
-    return cho_solve((L_S, True), Pxz.T).T
+    return gaussian.cho_solve_small(L_S, Pxz.T).T
 
 
 def select_state(missing: Array, old: Any, new: Any) -> Any:

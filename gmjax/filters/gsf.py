@@ -94,15 +94,23 @@ def check_reducer(reducer: Any) -> Any:
     return reducer
 
 
-def fit_capacity(gm: GaussianMixture, capacity: int) -> tuple[GaussianMixture, Array]:
+def fit_capacity(
+    gm: GaussianMixture, capacity: int, *, heaviest_first: bool = False
+) -> tuple[GaussianMixture, Array]:
     """Pad or truncate ``gm`` to ``capacity`` slots, keeping the heaviest; returns ``(gm, overflow)``.
 
     Truncation renormalises the kept weights; ``overflow`` is True when a live component was dropped.
+    ``heaviest_first`` (static): ``gm``'s live slots already come first, heaviest first (ties: lower
+    slot), as the pruners store them, so the first ``capacity`` slots are the ``top_k`` and truncation
+    is a slice (the same values, without a second ``top_k``).
     """
     if gm.capacity <= capacity:
         return gmm.pad(gm, capacity), jnp.zeros((), bool)
     overflow = gmm.n_active(gm) > capacity
-    kept = gmm.top_k(gm, capacity)
+    if heaviest_first:
+        kept = jax.tree_util.tree_map(lambda a: a[:capacity], gm)
+    else:
+        kept = gmm.top_k(gm, capacity)
     kept = jax.lax.cond(overflow, gmm.normalize, lambda g: g, kept)
     return kept, overflow
 
@@ -170,19 +178,21 @@ def gs_update(local: LocalFilter, gm: GaussianMixture, z: Array, t: Any, noise: 
     first_only = jnp.arange(noise.capacity) == 0
     j_mask = jnp.where(missing, first_only, noise.mask)
     j_logw = jnp.where(missing, 0.0, _noise_log_weights(noise))
-    mask = gm.mask[:, None] & j_mask[None, :]
-    log_prior = jnp.where(mask, gmm.log_weights(gm)[:, None] + j_logw[None, :], -jnp.inf)
-    log_w = jnp.where(mask, log_prior + jnp.where(missing, 0.0, loglik), -jnp.inf)
+    # flat (K·J,) from here: XLA's CPU reductions over a trailing (K, J) pair are several times slower
+    mask = (gm.mask[:, None] & j_mask[None, :]).reshape(-1)
+    log_prior = (gmm.log_weights(gm)[:, None] + j_logw[None, :]).reshape(-1)
+    log_prior = jnp.where(mask, log_prior, -jnp.inf)
+    log_w = jnp.where(mask, log_prior + jnp.where(missing, 0.0, loglik.reshape(-1)), -jnp.inf)
     log_norm = logsumexp(log_w)
     degenerate = ~jnp.isfinite(log_norm)
     log_w = jnp.where(degenerate, log_prior, log_w)
     log_w_norm = jnp.where(degenerate, logsumexp(log_prior), log_norm)
     weights = jnp.where(mask, jnp.exp(log_w - log_w_norm), 0.0)
     d = gm.dim
-    full = gmm.sanitize(
-        GaussianMixture(weights.reshape(-1), means.reshape(-1, d), covs.reshape(-1, d, d), mask.reshape(-1))
+    full = gmm.sanitize(GaussianMixture(weights, means.reshape(-1, d), covs.reshape(-1, d, d), mask))
+    return GSUpdate(
+        full, jnp.where(missing, 0.0, log_norm), degenerate, jnp.any(repaired.reshape(-1) & mask), missing
     )
-    return GSUpdate(full, jnp.where(missing, 0.0, log_norm), degenerate, jnp.any(repaired & mask), missing)
 
 
 def reduce_to_capacity(
@@ -203,7 +213,7 @@ def reduce_to_capacity(
             f"reducer: a stateful reducer must return exactly capacity={capacity} slots "
             f"(got {out.capacity}); configure its output capacity"
         )
-    out, overflow = fit_capacity(out, capacity)
+    out, overflow = fit_capacity(out, capacity, heaviest_first=getattr(reducer, "heaviest_first", False))
     return out, new_state, info, overflow | info.overflow
 
 

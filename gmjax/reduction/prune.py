@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
-from gmjax.mixture import GaussianMixture, sanitize
+from gmjax.mixture import GaussianMixture, pad, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 from gmjax.reduction.relax import (
@@ -146,10 +146,21 @@ def prune_top(
 
 @partial(jax.jit, static_argnames=("num_out", "cap"))
 def _prune_top(gm, num_out, cap):
-    w = jnp.where(gm.mask, gm.weights, -jnp.inf)
-    _, idx = jax.lax.top_k(w, num_out)
-    keep = jnp.zeros(gm.capacity, bool).at[idx].set(True) & gm.mask
-    return _keep(gm, keep, cap)
+    """One ``top_k`` picks the survivors already in output order (heaviest first, ties: lower slot):
+    no keep mask, no second selection. Padded slots are never picked ahead of a live one."""
+    w = jnp.where(gm.mask, gm.weights, 0.0)
+    total = jnp.sum(w)
+    _, idx = jax.lax.top_k(jnp.where(gm.mask, gm.weights, -jnp.inf), num_out)
+    kept = gm.mask[idx]
+    out = jax.tree_util.tree_map(lambda a: a[idx], gm)._replace(mask=kept)
+    kept_mass = jnp.sum(jnp.where(kept, out.weights, 0.0))
+    scale = jnp.where(kept_mass > 0, total / jnp.where(kept_mass > 0, kept_mass, 1.0), 1.0)
+    out = sanitize(out._replace(weights=out.weights * scale))
+    if cap > num_out:
+        out = pad(out, cap)
+    slot = jnp.where(kept, jnp.arange(num_out, dtype=jnp.int32), -1)
+    labels = jnp.full(gm.capacity, -1, jnp.int32).at[idx].set(slot)
+    return out, make_info(gm, out, labels, pruned_mass=total - kept_mass, aux={"scale": scale})
 
 
 def censored_count(gm: GaussianMixture, rho: Any, max_components: int | None = None) -> jax.Array:
@@ -267,7 +278,13 @@ class PruneThreshold(Stateless):
 
 @pytree_dataclass
 class PruneTop(Stateless):
-    """Reducer config for :func:`prune_top`."""
+    """Reducer config for :func:`prune_top`.
+
+    ``heaviest_first``: the output's live slots come first, heaviest first, so a filter fits it to a
+    smaller capacity by slicing (:func:`gmjax.filters.gsf.fit_capacity`).
+    """
+
+    heaviest_first = True
 
     num_out: int = static_field(10)
     capacity: int | None = static_field(None)
