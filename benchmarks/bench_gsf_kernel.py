@@ -1,7 +1,8 @@
 """gmjax's Gaussian sum filters against a minimal hand-written JAX kernel of the same work (issue 17).
 
-For each case (NL-GSF and R-GSF; the 1-D jump system of seed 000 and the 4-D range-bearing system of
-seed 000 Table 8; float64 and float32) the same ``N`` simulated measurement sequences are filtered by
+For each case (NL-GSF, R-GSF and PCM-GSF with the grid confidence search; the 1-D jump system of seed
+000 and the 4-D range-bearing system of seed 000 Table 8; float64 and float32) the same ``N`` simulated
+measurement sequences are filtered by
 
 * gmjax: ``jit(vmap(run(build_gsf(...))))`` returning the estimates and their covariances, and
 * the minimal kernel of ``benchmarks/reference/gsf_minimal.py`` (plain ``jax.numpy``: no mixture type,
@@ -10,10 +11,15 @@ seed 000 Table 8; float64 and float32) the same ``N`` simulated measurement sequ
 in the same process, alternating, and the benchmark prints compile time apart from run time, µs per
 run-step, the ratio gmjax / minimal, and the largest difference of the estimates (float64: must be
 below 1e-9). ``track_ise=True`` (the per-step ISE diagnostic, opt-in) is timed as a separate gmjax row
-in 1-D.
+in 1-D for NL-GSF and R-GSF.
 
-Usage: python benchmarks/bench_gsf_kernel.py [--runs 1000] [--runs-runnalls 200] [--repeats 5] [--quick]
-       [--systems 1-D 4-D] [--filters prune runnalls] [--note "..."]
+PCM-GSF is configured as in the seed 000 studies (``PCM(max_components=20, capacity=20)``: ρ = 0.9544,
+α = 0.001, the 11-point λ grid on [1, 3], range scale 0.5, CI merging; clustering on the position
+dimensions (0, 2) in 4-D as for Table 8) with the Newton steps off (``newton_steps=0``): "PCM-GSF
+(grid)".
+
+Usage: python benchmarks/bench_gsf_kernel.py [--runs 1000] [--runs-runnalls 200] [--runs-pcm 200]
+       [--repeats 5] [--quick] [--systems 1-D 4-D] [--filters prune runnalls pcm] [--note "..."]
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+FILTER_NAMES = {"prune": "NL-GSF", "runnalls": "R-GSF", "pcm": "PCM-GSF (grid)"}
 
 
 def _log_mix(gm, capacity: int | None = None):
@@ -65,9 +73,10 @@ def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: 
     from gmjax.filters import run
     from gmjax.filters.gsf import build_gsf
     from gmjax.models.base import simulate
-    from gmjax.reduction import PruneTop, Runnalls
+    from gmjax.reduction import PCM, PruneTop, Runnalls
 
     sc = _scenario(system, dtype)
+    pcm_dims = None if system == "1-D" else (0, 2)  # seed 000 §IV-D clusters on position only
     model = sc.model
     keys = jax.random.split(jax.random.key(0), n_runs)
     _, zs, ts = jax.jit(jax.vmap(lambda k: simulate(sc, k)))(keys)
@@ -80,14 +89,20 @@ def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: 
         _log_mix(model.measurement_noise),
         capacity,
         reducer,
+        dims=pcm_dims,
     )
     minimal_fn = jax.jit(jax.vmap(minimal, (0, None)))
-    red = PruneTop(num_out=capacity) if reducer == "prune" else Runnalls(num_out=capacity)
+    red = {
+        "prune": lambda: PruneTop(num_out=capacity),
+        "runnalls": lambda: Runnalls(num_out=capacity),
+        "pcm": lambda: PCM(max_components=capacity, capacity=capacity, dims=pcm_dims, newton_steps=0),
+    }[reducer]()
     rows = []
     ref = time_jax(minimal_fn, zs, ts, repeats=repeats)
     ref_est = np.asarray(minimal_fn(zs, ts)[0])
     n_steps = zs.shape[1]
-    for track_ise in (False, True) if system == "1-D" else (False,):  # the 4-D ISE is too slow to time
+    # the 4-D ISE is too slow to time; PCM's ISE row is left out (PCM dominates its cost)
+    for track_ise in (False, True) if system == "1-D" and reducer != "pcm" else (False,):
         filt = build_gsf(model, "ekf", red, capacity=capacity, track_ise=track_ise)
 
         def gm_run(z, filt=filt):
@@ -102,7 +117,7 @@ def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: 
         rows.append(
             {
                 "system": system,
-                "filter": {"prune": "NL-GSF", "runnalls": "R-GSF"}[reducer],
+                "filter": FILTER_NAMES[reducer],
                 "dtype": jnp.dtype(dtype).name,
                 "track_ise": track_ise,
                 "n_runs": n_runs,
@@ -132,10 +147,15 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--runs-runnalls", type=int, default=200, help="runs of the R-GSF cases (its greedy loop is slow)"
     )
+    parser.add_argument(
+        "--runs-pcm", type=int, default=200, help="runs of the PCM-GSF cases (its search is slow)"
+    )
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="100 runs, 2 repeats, float64 only")
     parser.add_argument("--systems", nargs="+", default=["1-D", "4-D"])
-    parser.add_argument("--filters", nargs="+", default=["prune", "runnalls"])
+    parser.add_argument(
+        "--filters", nargs="+", default=["prune", "runnalls", "pcm"], choices=list(FILTER_NAMES)
+    )
     parser.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
     parser.add_argument("--note", default="")
     args = parser.parse_args(argv)
@@ -151,7 +171,8 @@ def main(argv: list[str] | None = None) -> dict:
     for system in args.systems:
         for reducer in args.filters:
             for dtype in dtypes:
-                runs = min(n_runs, args.runs_runnalls) if reducer == "runnalls" else n_runs
+                cap = {"runnalls": args.runs_runnalls, "pcm": args.runs_pcm}.get(reducer, n_runs)
+                runs = min(n_runs, cap)
                 try:
                     rows += case(system, reducer, dtype, runs, repeats)
                 except TypeError as e:  # e.g. a scenario that does not keep float32 under x64
@@ -188,11 +209,14 @@ def main(argv: list[str] | None = None) -> dict:
     ]
     md = (
         "# gmjax's GSF against a minimal hand-written JAX kernel\n\n"
-        f"{n_runs} runs (R-GSF: {min(n_runs, args.runs_runnalls)}), `jit(vmap(...))` over runs, best of"
+        f"{n_runs} runs (R-GSF: {min(n_runs, args.runs_runnalls)}, PCM-GSF: {min(n_runs, args.runs_pcm)}),"
+        f" `jit(vmap(...))` over runs, best of"
         f" {repeats} after compilation; the minimal kernel"
         " (`benchmarks/reference/gsf_minimal.py`) is timed before and after each gmjax row and the faster"
         " of the two is used. 1-D: seed 000 jump system (120 steps, 3 × 1 noise components); 4-D: seed 000"
-        " Table 8 range-bearing system (100 steps, 1 × 4). Capacity 20. Load average before / after: "
+        " Table 8 range-bearing system (100 steps, 1 × 4). Capacity 20. PCM-GSF (grid): the seed 000"
+        " studies' PCM (N_u = 20; clustering on position in 4-D) with the 11-point λ grid and no Newton"
+        " steps. Load average before / after: "
         f"{' '.join(load_before)} / {' '.join(load_after)}.\n\n" + markdown_table(header, table) + "\n"
     )
     if failed:

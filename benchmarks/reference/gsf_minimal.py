@@ -9,6 +9,10 @@ Joseph-form covariance, estimate = moments of the updated mixture) followed by
 * NL-GSF: keep the ``K`` heaviest (``lax.top_k``) and renormalise;
 * R-GSF: Runnalls' greedy pairwise merging down to ``K`` (the KL upper-bound cost of seed 003 eq 11),
   with the cost matrix computed once and one row/column refreshed per merge.
+* PCM-GSF (grid): seed 000's prune-cluster-merge with the grid confidence search and no Newton
+  steps, as ``gmjax.reduction.PCM(max_components=K, capacity=K, newton_steps=0)``: clusters are
+  ``uint32`` bitmasks (``K <= 32``), one ``while_loop`` visits only the overlapping cluster pairs of
+  all grid points, and what does not depend on ``λ`` is computed once per step (see :func:`_pcm`).
 
 ``benchmarks/bench_gsf_kernel.py`` times them beside gmjax in one process and checks that the
 estimates agree to 1e-9. Only the robustness work a minimal kernel would skip is missing here
@@ -192,6 +196,177 @@ def _runnalls_row(i, w, m, P, logdet):
     return jnp.where(dead, jnp.inf, cost)
 
 
+# ----------------------------------------------------------------------------- PCM (grid search)
+
+
+def _inv_quad(x, P):
+    """``x^T P^{-1} x`` for ``x (..., d)``, ``P (..., d, d)``: closed form for ``d <= 2`` (gmjax's formulas)."""
+    d = P.shape[-1]
+    if d == 1:
+        return x[..., 0] ** 2 / P[..., 0, 0]
+    if d == 2:
+        a, b, e = P[..., 0, 0], P[..., 0, 1], P[..., 1, 1]
+        x0, x1 = x[..., 0], x[..., 1]
+        return (e * x0 * x0 - 2.0 * b * x0 * x1 + a * x1 * x1) / (a * e - b * b)
+    L = _chol(P)
+    r = solve_triangular(L, x[..., None], lower=True)[..., 0]
+    return jnp.sum(r * r, -1)
+
+
+def _logpdf(x, m, P):
+    """``log N(x; m, P)`` broadcast over leading axes."""
+    d = P.shape[-1]
+    if d == 1:
+        logdet = jnp.log(P[..., 0, 0])
+    elif d == 2:
+        logdet = jnp.log(P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] * P[..., 1, 0])
+    else:
+        logdet = _logdet(P)
+    return -0.5 * (d * _LOG_2PI + logdet + _inv_quad(x - m, P))
+
+
+def _inv(P):
+    """Inverse of SPD ``P (..., d, d)``: closed form for ``d <= 2``, Cholesky above."""
+    d = P.shape[-1]
+    if d == 1:
+        return 1.0 / P
+    if d == 2:
+        a, b, c, e = P[..., 0, 0], P[..., 0, 1], P[..., 1, 0], P[..., 1, 1]
+        out = (
+            jnp.stack([jnp.stack([e, -b], -1), jnp.stack([-c, a], -1)], -2) / (a * e - b * c)[..., None, None]
+        )
+        return 0.5 * (out + jnp.swapaxes(out, -1, -2))
+    L = _chol(P)
+    Linv = solve_triangular(L, jnp.broadcast_to(jnp.eye(d, dtype=P.dtype), P.shape), lower=True)
+    return jnp.swapaxes(Linv, -1, -2) @ Linv
+
+
+def _cluster(delta, dist, radii):
+    """Gauss clustering (seed 000 eqs 24–28) at every scope of ``radii (G,)``: ``(G, k)`` ``uint32``
+    rows (``k <= 32``), bit ``m`` of row ``c`` set when component ``m`` is in the cluster headed by
+    slot ``c``.
+
+    Row ``i`` holds the ``j`` with ``δ_ij <= radius`` (eqs 24–25); a row equal to a lower non-empty
+    row is emptied (Step 1); then the pairs ``(i, j)``, ``i < j``, are visited in lexicographic order
+    and each pair that shares a component is split (Steps 2–3; the other pairs are no-ops):
+    identical -> ``j`` emptied; one inside the other -> the subset kept, the superset keeps its
+    complement; partial overlap -> every shared component goes to the cluster whose nearest remaining
+    member is closer (eq 28, ties to ``i``). One loop walks the grid points one after the other and
+    visits only the sharing pairs, so under ``vmap`` it runs the batch's largest *total* number of
+    splits, not the sum over the grid of each point's largest.
+    """
+    k = delta.shape[0]
+    ar = jnp.arange(k, dtype=jnp.uint32)
+    bit = jnp.left_shift(jnp.uint32(1), ar)
+    rows = jnp.sum(jnp.where(delta[None] <= radii[:, None, None], bit, jnp.uint32(0)), -1, dtype=jnp.uint32)
+    lower = ar[None, :] < ar[:, None]
+    dup = jnp.any((rows[:, :, None] == rows[:, None, :]) & lower & (rows[:, None, :] != 0), -1)
+    rows = jnp.where(dup, jnp.uint32(0), rows)
+
+    def members(row):
+        return (jnp.right_shift(row, ar) & 1) == 1
+
+    def next_pair(rows, i, j):  # the first sharing pair (i', j') >= (i, j), i' < j'
+        in_row = ((rows & rows[i]) != 0) & (ar >= j) & (ar > i)
+        later = jnp.append(jax.lax.associative_scan(jnp.bitwise_or, rows, reverse=True)[1:], jnp.uint32(0))
+        has = ((rows & later) != 0) & (ar > i)  # rows after i sharing with a row after them
+        here = jnp.any(in_row)
+        i2 = jnp.where(here, i, jnp.argmax(has).astype(jnp.uint32))
+        j2 = jnp.argmax(jnp.where(here, in_row, ((rows & rows[i2]) != 0) & (ar > i2))).astype(jnp.uint32)
+        return here | jnp.any(has), i2, j2
+
+    def split(rows, i, j):
+        ci, cj = rows[i], rows[j]
+        ov, ri, rj = ci & cj, ci & ~cj, cj & ~ci
+        di = jnp.min(jnp.where(members(ri)[:, None], dist, jnp.inf), 0)
+        dj = jnp.min(jnp.where(members(rj)[:, None], dist, jnp.inf), 0)
+        to_i = ov & jnp.sum(jnp.where(di <= dj, bit, jnp.uint32(0)), dtype=jnp.uint32)
+        j_in_i, i_in_j = rj == 0, ri == 0
+        new_i = jnp.where(j_in_i & i_in_j, ci, jnp.where(j_in_i, ri, jnp.where(i_in_j, ci, ri | to_i)))
+        new_j = jnp.where(j_in_i & i_in_j, 0, jnp.where(j_in_i, cj, jnp.where(i_in_j, rj, rj | (ov & ~to_i))))
+        return jnp.where(ar == i, new_i, jnp.where(ar == j, new_j, rows))
+
+    def step(carry):  # split the next sharing pair of grid point g, or move on to g + 1
+        rows_all, g, i, j = carry
+        rows = rows_all[g]
+        found, i, j = next_pair(rows, i, j)
+        rows_all = rows_all.at[g].set(jnp.where(found, split(rows, i, j), rows))
+        return rows_all, jnp.where(found, g, g + 1), jnp.where(found, i, 0), jnp.where(found, j + 1, 1)
+
+    zero = jnp.zeros((), jnp.uint32)
+    return jax.lax.while_loop(lambda c: c[1] < radii.shape[0], step, (rows, zero, zero, zero + 1))[0]
+
+
+def _pcm(log_w, m, P, k: int, rho, alpha, lambda_range, grid_size: int, range_scale, dims):
+    """Seed 000 PCM-GMR with the grid confidence search (no Newton), as ``gmjax.reduction.PCM(
+    max_components=k, capacity=k, newton_steps=0)``: censored pruning to the ``N <= k`` heaviest
+    holding ``rho`` of the mass (eqs 19–22; eq 41 rescales them to the input's total), Gauss clustering at
+    every ``λ`` of the grid (eqs 23–28), covariance-intersection merge (eqs 38–39) and EISE (eqs 29–35);
+    the first grid minimiser is kept. Output slot ``c`` is the cluster headed by pruned slot ``c``
+    (dead slots copy cluster 0, which is never empty).
+
+    The λ-independent parts (similarity thresholds, centre distances, inverse covariances and the
+    pairwise overlaps ``∫ N_m N_n``) are computed once; the cross term ``∫ f_c q_c`` only at each
+    component's own cluster (the other terms of gmjax's ``(K, C)`` matrix are multiplied by 0).
+    """
+    dtype = m.dtype
+    d = m.shape[-1]
+    # censored pruning (eqs 19-22, 41): heaviest first, ties to the lower slot
+    w_all = jnp.exp(log_w)
+    total = jnp.sum(w_all)
+    w, idx = jax.lax.top_k(w_all, k)
+    n_keep = jnp.minimum(1 + jnp.sum(jnp.cumsum(w) < rho * total), k)
+    live = jnp.arange(k) < n_keep
+    w = jnp.where(live, w, 0.0)
+    w = w * (total / jnp.sum(w))
+    m, P = m[idx], P[idx]
+    # lambda-independent pieces
+    cm, cP = (m, P) if dims is None else (m[:, dims], P[:, dims][:, :, dims])
+    maha = _inv_quad(cm[None, :, :] - cm[:, None, :], cP[:, None])  # [i, j]: (u_j - u_i)' P_i^-1 (u_j - u_i)
+    sq = jnp.maximum(maha, maha.T)
+    live2 = live[:, None] & live[None, :]
+    delta = jnp.where(live2, jnp.sqrt(jnp.where(sq > 0, sq, 0.0)), jnp.inf)
+    delta = jnp.where(jnp.eye(k, dtype=bool) & live2, 0.0, delta)
+    diff = cm[:, None, :] - cm[None, :, :]
+    sqd = jnp.sum(diff * diff, -1)
+    dist = jnp.where(sqd > 0, jnp.sqrt(jnp.where(sqd > 0, sqd, 1.0)), 0.0)
+    info = jnp.where(live[:, None, None], _inv(P), 0.0)
+    ww_S = jnp.where(live2, jnp.exp(_logpdf(m[:, None], m[None], P[:, None] + P[None])), 0.0) * jnp.outer(
+        w, w
+    )
+    eye = jnp.eye(d, dtype=dtype)
+    ar = jnp.arange(k, dtype=jnp.uint32)
+    lo, hi = (jnp.asarray(v, dtype) for v in lambda_range)
+    grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, grid_size, dtype=dtype)
+
+    def evaluate(rows):
+        A = ((jnp.right_shift(rows[None, :], ar[:, None]) & 1) == 1).astype(dtype)  # (k, C) one-hot
+        omega = A * w[:, None]
+        W = jnp.sum(omega, 0)
+        on = W > 0
+        frac = omega / jnp.where(on, W, 1.0)[None, :]
+        cov = _inv(jnp.where(on[:, None, None], jnp.einsum("kc,kij->cij", frac, info), eye))
+        mu = jnp.einsum("cij,cj->ci", cov, jnp.einsum("kc,kij,kj->ci", frac, info, m))
+        mu, cov = jnp.where(on[:, None], mu, 0.0), jnp.where(on[:, None, None], cov, eye)
+        # per-cluster ISE (eqs 31, 35): J_hh - 2 J_hr + J_rr, clipped at 0
+        own = jnp.argmax(A, 1)
+        cross = jnp.where(live, jnp.exp(_logpdf(m, mu[own], P + cov[own])), 0.0) * w
+        j_hh = jnp.einsum("mc,mn,nc->c", A, ww_S, A)
+        j_hr = (A.T @ cross) * W
+        j_rr = W * W * jnp.exp(_logpdf(mu, mu, 2.0 * cov))
+        ise = jnp.maximum(jnp.where(on, j_hh - 2.0 * j_hr + j_rr, 0.0), 0.0)
+        value = 0.5 * jnp.sum(ise) + alpha * jnp.exp(jnp.sum(on).astype(dtype) / n_keep.astype(dtype))
+        return value, W, mu, cov
+
+    values, W, mu, cov = jax.vmap(evaluate)(_cluster(delta, dist, range_scale * grid))
+    best = jnp.argmin(values)
+    W, mu, cov = W[best], mu[best], cov[best]
+    on = W > 0
+    mu = jnp.where(on[:, None], mu, mu[0])
+    cov = jnp.where(on[:, None, None], 0.5 * (cov + jnp.swapaxes(cov, -1, -2)), cov[0])
+    return jnp.where(on, jnp.log(jnp.where(on, W, 1.0)), -jnp.inf), mu, cov
+
+
 def minimal_gsf(
     f: Callable,
     h: Callable,
@@ -200,6 +375,13 @@ def minimal_gsf(
     r: Mix,
     capacity: int,
     reducer: str = "prune",
+    *,
+    rho: float = 0.9544,
+    alpha: float = 1e-3,
+    lambda_range: tuple[float, float] = (1.0, 3.0),
+    grid_size: int = 11,
+    range_scale: float = 0.5,
+    dims: tuple[int, ...] | None = None,
 ) -> Callable[[jax.Array, jax.Array], tuple[jax.Array, jax.Array]]:
     """``run(zs (T, mz), ts (T,)) -> (means (T, d), covs (T, d, d))`` of an EKF-based GSF.
 
@@ -208,10 +390,23 @@ def minimal_gsf(
         prior, q, r: ``(log_w, means, covs)`` of the prior (padded to ``capacity`` with ``-inf`` log
             weights), the process noise and the measurement noise (normalised log weights).
         capacity: ``K``, the posterior's slots.
-        reducer: ``"prune"`` (keep the ``K`` heaviest) or ``"runnalls"``.
+        reducer: ``"prune"`` (keep the ``K`` heaviest), ``"runnalls"`` or ``"pcm"`` (PCM-GMR with the
+            grid confidence search, ``N_u = K``).
+        rho, alpha, lambda_range, grid_size, range_scale, dims: PCM's parameters (as
+            ``gmjax.reduction.PCM``; defaults of the seed 000 studies).
     """
     F, H = jax.jacfwd(f), jax.jacfwd(h)
-    reduce = {"prune": _keep_top, "runnalls": _runnalls}[reducer]
+    if reducer == "pcm":
+        if capacity > 32:
+            raise ValueError(
+                f"capacity: the minimal PCM keeps clusters as uint32 bitmasks (<= 32), got {capacity}"
+            )
+        cfg = (rho, alpha, lambda_range, grid_size, range_scale, None if dims is None else list(dims))
+
+        def reduce(log_w, m, P, k):
+            return _pcm(log_w, m, P, k, *cfg)
+    else:
+        reduce = {"prune": _keep_top, "runnalls": _runnalls}[reducer]
 
     def step(carry, zt):
         z, t = zt
