@@ -69,6 +69,14 @@ def test_range_bearing_truth_accelerates_in_y():
     assert np.all(np.isfinite(zs))
 
 
+def test_range_bearing_float32_simulates_float32_under_x64():
+    # the glint's Laplace scale once divided by a NumPy float64 and promoted the measurements
+    sc = range_bearing(duration=0.05, dtype=jnp.float32)
+    xs, zs, _ = simulate(sc, jax.random.key(5))
+    assert xs.dtype == jnp.float32 and zs.dtype == jnp.float32
+    assert np.all(np.isfinite(np.asarray(zs)))
+
+
 def _moments_within_se(draws, mean, cov, n_se=5):
     n = len(draws)
     assert np.all(np.abs(draws.mean(0) - mean) < n_se * np.sqrt(np.diag(cov) / n))

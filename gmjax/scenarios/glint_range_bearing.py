@@ -3,6 +3,8 @@ eqs 51-53, Table 8)."""
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -68,7 +70,7 @@ def range_bearing(
     x0 = jnp.asarray([1000.0, 240.0, 4000.0, 0.0], dtype)
     accel = jnp.asarray([0.0, 0.0, acceleration_y * dt**2 / 2, acceleration_y * dt], dtype)
     r_mean, r_cov = gmm.moments(r)
-    lap_scale = glint_std_factor * jnp.sqrt(jnp.diagonal(r_cov)) / np.sqrt(2.0)
+    lap_scale = glint_std_factor * jnp.sqrt(jnp.diagonal(r_cov)) / math.sqrt(2.0)  # weak: keeps dtype
     draw_r = mixture_sampler(r)
     Lq = jnp.asarray(np.linalg.cholesky(Qx), dtype)
 
