@@ -156,7 +156,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--max-seconds", type=float, default=30.0, help="skip the sizes whose run is predicted to take longer"
     )
-    parser.add_argument("--timeout", type=float, default=300.0, help="seconds per configuration")
+    parser.add_argument(
+        "--timeout", type=float, default=300.0, help="seconds per configuration (retried once)"
+    )
     parser.add_argument("--note", default="")
     parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -179,6 +181,8 @@ def main(argv: list[str] | None = None) -> dict:
             for size in sizes:
                 cfg = dict(base, **{axis: size})
                 r = _measure_in_subprocess(name, cfg["N"], cfg["K"], cfg["d"], args.repeats, args.timeout)
+                if r is None:  # one retry in a fresh process: the XLA CPU hang is intermittent
+                    r = _measure_in_subprocess(name, cfg["N"], cfg["K"], cfg["d"], args.repeats, args.timeout)
                 if r is None:
                     hung.append(f"{name} N={cfg['N']} K={cfg['K']} d={cfg['d']}")
                     print(
