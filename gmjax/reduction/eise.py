@@ -54,6 +54,7 @@ __all__ = [
     "onehot_membership",
     "merge_membership",
     "cluster_ise",
+    "self_overlaps",
     "eise",
     "penalty",
     "hard_eise",
@@ -79,7 +80,9 @@ def onehot_membership(labels: Array, num_clusters: int, dtype: DTypeLike | None 
     return (labels[:, None] == jnp.arange(num_clusters)[None, :]).astype(dtype)
 
 
-def merge_membership(gm: GaussianMixture, membership: Array, method: str = "ci") -> GaussianMixture:
+def merge_membership(
+    gm: GaussianMixture, membership: Array, method: str = "ci", *, info: Array | None = None
+) -> GaussianMixture:
     """Merge every (soft) cluster into one Gaussian: a mixture of capacity ``C``.
 
     With fractional weights ``ω_mc = A_mc w_m`` and ``W_c = Σ_m ω_mc``:
@@ -98,6 +101,8 @@ def merge_membership(gm: GaussianMixture, membership: Array, method: str = "ci")
         membership: ``(K, C)`` non-negative, rows of live components summing to 1 (one-hot for a
             hard clustering).
         method: ``"ci"`` or ``"moment"``.
+        info: optional ``(K, d, d)`` ``P_m^{-1}`` (``gaussian.spd_inv(gm.covs)``), when the caller
+            merges many clusterings of the same mixture (the confidence search).
     """
     if method not in _METHODS:
         raise ValueError(f"method: expected one of {_METHODS}, got {method!r}")
@@ -118,7 +123,7 @@ def merge_membership(gm: GaussianMixture, membership: Array, method: str = "ci")
         within = jnp.einsum("kc,kij->cij", frac, gm.covs)
         cov = gaussian.symmetrize(within + spread)
     else:
-        info = gaussian.spd_inv(gm.covs)  # (K, d, d); padded slots hold I
+        info = gaussian.spd_inv(gm.covs) if info is None else info  # (K, d, d); padded slots hold I
         info = jnp.where(gm.mask[:, None, None], info, 0.0)
         info_c = jnp.einsum("kc,kij->cij", frac, info)
         info_c = jnp.where(live[:, None, None], info_c, eye)
@@ -130,32 +135,59 @@ def merge_membership(gm: GaussianMixture, membership: Array, method: str = "ci")
     return GaussianMixture(jnp.where(live, W, 0.0), mu, cov, live)
 
 
-def cluster_ise(gm: GaussianMixture, membership: Array, merged: GaussianMixture) -> Array:
+def _pair_log_overlaps(ma: Array, Pa: Array, mb: Array, Pb: Array) -> Array:
+    """``(A, B)`` ``log ∫ N(ma, Pa) N(mb, Pb) = log N(ma; mb, Pa + Pb)`` (seed 000 eqs 34–35)."""
+    return gaussian.spd_logpdf(ma[:, None, :], mb[None, :, :], Pa[:, None] + Pb[None, :])
+
+
+def self_overlaps(gm: GaussianMixture) -> Array:
+    """``(K, K)`` ``∫ N(u_m, P_m) N(u_n, P_n)`` between the live components (0 where either is padded)."""
+    live = gm.mask[:, None] & gm.mask[None, :]
+    return jnp.exp(jnp.where(live, _pair_log_overlaps(gm.means, gm.covs, gm.means, gm.covs), -jnp.inf))
+
+
+def cluster_ise(
+    gm: GaussianMixture,
+    membership: Array,
+    merged: GaussianMixture,
+    *,
+    overlaps: Array | None = None,
+    labels: Array | None = None,
+) -> Array:
     """``(C,)`` per-cluster ``∫ (f_c - q_c)² = J_hh - 2 J_hr + J_rr`` (seed 000 eqs 31, 35).
 
     ``f_c = Σ_m A_mc w_m N(u_m, P_m)`` and ``q_c`` is slot ``c`` of ``merged``.
+
+    Args:
+        gm, membership, merged: the mixture ``(K)``, the ``(K, C)`` membership and the merged clusters.
+        overlaps: optional :func:`self_overlaps` of ``gm`` (independent of the clustering: the
+            confidence search computes it once for all its grid points).
+        labels: for a hard clustering, ``membership``'s ``(K,)`` labels (cluster of each slot, ``-1``
+            for none): ``J_hr`` then needs each component against its own cluster only (``K``
+            evaluations instead of ``K C``; the same sum).
     """
     dtype = gm.means.dtype
     w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
     Aw = jnp.where(gm.mask[:, None], membership.astype(dtype), 0.0) * w[:, None]  # (K, C)
-
-    def pair(ma, Pa, mb, Pb):  # log ∫ N(ma, Pa) N(mb, Pb) = log N(ma; mb, Pa + Pb), (A, B)
-        return gaussian.spd_logpdf(ma[:, None, :], mb[None, :, :], Pa[:, None] + Pb[None, :])
-
-    S = jnp.exp(
-        jnp.where(gm.mask[:, None] & gm.mask[None, :], pair(gm.means, gm.covs, gm.means, gm.covs), -jnp.inf)
-    )
-    S_cross = jnp.exp(
-        jnp.where(
-            gm.mask[:, None] & merged.mask[None, :],
-            pair(gm.means, gm.covs, merged.means, merged.covs),
-            -jnp.inf,
+    S = self_overlaps(gm) if overlaps is None else overlaps
+    if labels is None:
+        S_cross = jnp.exp(
+            jnp.where(
+                gm.mask[:, None] & merged.mask[None, :],
+                _pair_log_overlaps(gm.means, gm.covs, merged.means, merged.covs),
+                -jnp.inf,
+            )
         )
-    )
+        cross = jnp.einsum("mc,mc->c", Aw, S_cross)
+    else:
+        own = jnp.maximum(labels, 0)
+        live = gm.mask & (labels >= 0) & merged.mask[own]
+        log_own = gaussian.spd_logpdf(gm.means, merged.means[own], gm.covs + merged.covs[own])
+        cross = jnp.einsum("mc,m->c", Aw, jnp.exp(jnp.where(live, log_own, -jnp.inf)))
     self_norm = jnp.exp(gaussian.spd_logpdf(merged.means, merged.means, 2.0 * merged.covs))
     Wc = jnp.where(merged.mask, merged.weights, 0.0)
     j_hh = jnp.einsum("mc,mn,nc->c", Aw, S, Aw)
-    j_hr = jnp.einsum("mc,mc->c", Aw, S_cross) * Wc
+    j_hr = cross * Wc
     j_rr = Wc * Wc * self_norm
     return jnp.where(merged.mask, j_hh - 2.0 * j_hr + j_rr, 0.0)
 
@@ -184,6 +216,8 @@ def eise(
     regularizer: str = "exp",
     ise_scale: float = 0.5,
     clip: bool = True,
+    overlaps: Array | None = None,
+    labels: Array | None = None,
 ) -> Array:
     """The EISE ``ise_scale · Σ_c ∫ (f_c - q_c)² + penalty(N')`` (seed 000 eq 29 / seed 003 eq 10).
 
@@ -195,8 +229,9 @@ def eise(
         regularizer: ``"exp"`` (seed 000) or ``"log10"`` (seed 003).
         ise_scale: ``0.5`` for seed 000 eq 29, ``1.0`` for seed 003 eq 10.
         clip: clip each cluster's integral at 0 (rounding can make a singleton's ``0`` negative).
+        overlaps, labels: see :func:`cluster_ise`.
     """
-    per = cluster_ise(gm, membership, merged)
+    per = cluster_ise(gm, membership, merged, overlaps=overlaps, labels=labels)
     if clip:
         per = jnp.maximum(per, 0.0)
     return ise_scale * jnp.sum(per) + penalty(n_clusters, n_ref, alpha, regularizer)
@@ -211,8 +246,13 @@ def hard_eise(
     method: str = "ci",
     regularizer: str = "exp",
     ise_scale: float = 0.5,
+    overlaps: Array | None = None,
+    info: Array | None = None,
 ) -> tuple[Array, GaussianMixture, Array]:
     """Merge a hard clustering (labels = head slot, ``-1`` for padding) and its EISE.
+
+    ``overlaps`` (:func:`self_overlaps`) and ``info`` (``P_m^{-1}``) are optional precomputations
+    of the clustering-independent parts (see :func:`cluster_ise`, :func:`merge_membership`).
 
     Returns:
         ``(eise, merged, n_clusters)`` with ``merged`` of capacity ``K`` indexed by head slot.
@@ -220,7 +260,7 @@ def hard_eise(
     _check_options(method, regularizer)
     K = gm.capacity
     A = onehot_membership(labels, K, gm.means.dtype)
-    merged = merge_membership(gm, A, method)
+    merged = merge_membership(gm, A, method, info=info)
     n_clusters = jnp.sum(merged.mask.astype(jnp.int32))
     n_ref = jnp.sum(gm.mask.astype(jnp.int32))
     value = eise(
@@ -232,6 +272,8 @@ def hard_eise(
         alpha=alpha,
         regularizer=regularizer,
         ise_scale=ise_scale,
+        overlaps=overlaps,
+        labels=labels,
     )
     return value, merged, n_clusters
 
@@ -422,6 +464,9 @@ def search_confidence(
     lo = jnp.asarray(lam_lo, dtype)
     hi = jnp.asarray(lam_hi, dtype)
     grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, grid_size, dtype=dtype)
+    # the clustering-independent parts of every grid point's EISE and merge, once
+    overlaps = self_overlaps(gm)
+    info = gaussian.spd_inv(gm.covs) if method == "ci" else None
 
     def evaluate(lam):
         res: ClusterResult = gauss_cluster(
@@ -434,7 +479,14 @@ def search_confidence(
             dist=dist,
         )
         value, merged, n = hard_eise(
-            gm, res.labels, alpha=alpha, method=method, regularizer=regularizer, ise_scale=ise_scale
+            gm,
+            res.labels,
+            alpha=alpha,
+            method=method,
+            regularizer=regularizer,
+            ise_scale=ise_scale,
+            overlaps=overlaps,
+            info=info,
         )
         return value, res.labels, merged, n
 
