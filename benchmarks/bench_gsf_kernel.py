@@ -19,7 +19,11 @@ dimensions (0, 2) in 4-D as for Table 8) with the Newton steps off (``newton_ste
 (grid)".
 
 Usage: python benchmarks/bench_gsf_kernel.py [--runs 1000] [--runs-runnalls 200] [--runs-pcm 200]
-       [--repeats 5] [--quick] [--systems 1-D 4-D] [--filters prune runnalls pcm] [--note "..."]
+       [--repeats 5] [--quick] [--systems 1-D 4-D] [--filters prune runnalls pcm] [--timeout 900]
+       [--note "..."]
+
+Each case (system, filter, dtype) runs in a fresh process, retried once if it gives no result within
+``--timeout`` seconds (a long process hung in the XLA CPU runtime; see ``_case_in_subprocess``).
 """
 
 from __future__ import annotations
@@ -130,15 +134,29 @@ def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: 
                 "max_abs_diff": float(np.max(np.abs(est - ref_est))),
             }
         )
-        r = rows[-1]
-        print(
-            f"{system} {r['filter']} {r['dtype']} ise={track_ise}: gmjax {r['gmjax_us_per_run_step']:.3f} "
-            f"µs/run-step (compile {r['gmjax_compile_s']:.1f} s), minimal {r['minimal_us_per_run_step']:.3f} "
-            f"(compile {r['minimal_compile_s']:.1f} s), ratio {r['ratio']:.2f}, "
-            f"max |Δ est| {r['max_abs_diff']:.1e}",
-            flush=True,
-        )
     return rows
+
+
+def _case_in_subprocess(system: str, reducer: str, dtype: str, runs: int, repeats: int, timeout: float):
+    """:func:`case` in a fresh process: ``(rows, None)``, or ``(None, why)`` when it failed or gave no
+    result within ``timeout`` seconds twice (a long process hung in the XLA CPU runtime, every thread
+    waiting on a futex, with no pattern we could reproduce; a fresh process avoids it)."""
+    import json
+    import subprocess
+
+    cmd = [sys.executable, __file__, "--one", json.dumps([system, reducer, dtype, runs, repeats])]
+    why = ""
+    for _ in range(2):
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            why = f"no result within {timeout:.0f} s (twice)"
+            continue
+        if res.returncode != 0:
+            lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+            return None, (lines[-1] if lines else f"exit code {res.returncode}")
+        return json.loads(res.stdout.strip().splitlines()[-1]), None
+    return None, why
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -158,8 +176,16 @@ def main(argv: list[str] | None = None) -> dict:
     )
     parser.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
     parser.add_argument("--note", default="")
+    parser.add_argument("--timeout", type=float, default=900.0, help="seconds per case (retried once)")
+    parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
+    if args.one is not None:
+        import json
+
+        system, reducer, dtype_name, runs, repeats = json.loads(args.one)
+        print(json.dumps(case(system, reducer, jnp.dtype(dtype_name).type, runs, repeats)))
+        return {}
     from _common import markdown_table, write_results
 
     n_runs, repeats = (100, 2) if args.quick else (args.runs, args.repeats)
@@ -173,11 +199,21 @@ def main(argv: list[str] | None = None) -> dict:
             for dtype in dtypes:
                 cap = {"runnalls": args.runs_runnalls, "pcm": args.runs_pcm}.get(reducer, n_runs)
                 runs = min(n_runs, cap)
-                try:
-                    rows += case(system, reducer, dtype, runs, repeats)
-                except TypeError as e:  # e.g. a scenario that does not keep float32 under x64
-                    failed.append(f"{system} {reducer} {jnp.dtype(dtype).name}: {str(e).splitlines()[0]}")
+                name = jnp.dtype(dtype).name
+                got, why = _case_in_subprocess(system, reducer, name, runs, repeats, args.timeout)
+                if got is None:
+                    failed.append(f"{system} {reducer} {name}: {why}")
                     print(f"FAILED {failed[-1]}", flush=True)
+                    continue
+                rows += got
+                for r in got:
+                    print(
+                        f"{system} {r['filter']} {r['dtype']} ise={r['track_ise']}: gmjax "
+                        f"{r['gmjax_us_per_run_step']:.3f} µs/run-step (compile {r['gmjax_compile_s']:.1f} s), "
+                        f"minimal {r['minimal_us_per_run_step']:.3f} (compile {r['minimal_compile_s']:.1f} s), "
+                        f"ratio {r['ratio']:.2f}, max |Δ est| {r['max_abs_diff']:.1e}",
+                        flush=True,
+                    )
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
     header = [
