@@ -233,7 +233,7 @@ def inv_spd(cov: ArrayLike) -> Matrix:
     """Inverse of a symmetric positive definite matrix through its Cholesky factor."""
     L = _chol(cov)
     eye = jnp.eye(L.shape[-1], dtype=L.dtype)
-    return symmetrize(cho_solve((L, True), eye))
+    return symmetrize(cho_solve_small(L, eye))
 
 
 def _check_dims(**arrays: ArrayLike) -> None:
@@ -336,7 +336,7 @@ def spd_logdet(P: jax.Array) -> jax.Array:
         return jnp.log(P[..., 0, 0])
     if d == 2:
         return jnp.log(P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] * P[..., 1, 0])
-    L = jnp.linalg.cholesky(P)
+    L = _cholesky(P)  # unrolled for d <= 6
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
 
 
@@ -350,9 +350,12 @@ def spd_inv(P: jax.Array) -> jax.Array:
         det = a * e - b * c
         out = jnp.stack([jnp.stack([e, -b], -1), jnp.stack([-c, a], -1)], -2) / det[..., None, None]
         return 0.5 * (out + jnp.swapaxes(out, -1, -2))
-    L = jnp.linalg.cholesky(P)
-    eye = jnp.broadcast_to(jnp.eye(d, dtype=P.dtype), P.shape)
-    Linv = jax.scipy.linalg.solve_triangular(L, eye, lower=True)
+    if d > _UNROLL_MAX_DIM:
+        L = jnp.linalg.cholesky(P)
+        eye = jnp.broadcast_to(jnp.eye(d, dtype=P.dtype), P.shape)
+        Linv = jax.scipy.linalg.solve_triangular(L, eye, lower=True)
+    else:
+        Linv = _lower_inverse(_cholesky(P))
     return jnp.swapaxes(Linv, -1, -2) @ Linv
 
 
@@ -366,9 +369,32 @@ def spd_inv_quad(x: jax.Array, P: jax.Array) -> jax.Array:
         det = a * e - b * b
         x0, x1 = x[..., 0], x[..., 1]
         return (e * x0 * x0 - 2.0 * b * x0 * x1 + a * x1 * x1) / det
-    L = jnp.linalg.cholesky(P)
-    r = jax.scipy.linalg.solve_triangular(L, x[..., None], lower=True)[..., 0]
-    return jnp.sum(r * r, axis=-1)
+    if d > _UNROLL_MAX_DIM:
+        L = jnp.linalg.cholesky(P)
+        r = jax.scipy.linalg.solve_triangular(L, x[..., None], lower=True)[..., 0]
+        return jnp.sum(r * r, axis=-1)
+    L = _cholesky(P)
+    x = jnp.broadcast_to(x, jnp.broadcast_shapes(x.shape, L.shape[:-1]))
+    rs: list[Array] = []
+    for i in range(d):  # forward substitution, broadcast over the leading axes
+        acc = x[..., i]
+        for k in range(i):
+            acc = acc - L[..., i, k] * rs[k]
+        rs.append(acc / L[..., i, i])
+    return functools.reduce(jnp.add, [r * r for r in rs])
+
+
+def _lower_inverse(L: Array) -> Array:
+    """``L^{-1}`` of lower-triangular ``(..., d, d)`` factors, unrolled (``d <= 6``)."""
+    d = L.shape[-1]
+    zero = jnp.zeros_like(L[..., 0, 0])
+    inv: list[list[Array]] = [[zero] * d for _ in range(d)]
+    for i in range(d):
+        inv[i][i] = 1.0 / L[..., i, i]
+        for j in range(i):
+            acc = functools.reduce(jnp.add, [L[..., i, k] * inv[k][j] for k in range(j, i)])
+            inv[i][j] = -acc * inv[i][i]
+    return jnp.stack([jnp.stack(row, -1) for row in inv], -2)
 
 
 def spd_logpdf(x: jax.Array, m: jax.Array, P: jax.Array) -> jax.Array:

@@ -363,7 +363,7 @@ def _gain_estimate(
         xp = predicted.means[i]
         y = z - (h_lin(xp, inputs)[0] + r_noise.means[j])
         Lc = safe_chol(S[i, j])
-        r = jax.scipy.linalg.solve_triangular(Lc.factor, y, lower=True)
+        r = gaussian.solve_lower(Lc.factor, y)
         ll = -0.5 * (m * jnp.log(2 * jnp.pi) + r @ r) - jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lc.factor))))
         return xp + K[i, j] @ y, ll, Lc.repaired
 

@@ -10,9 +10,8 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import solve_triangular
 
-from gmjax import quadrature
+from gmjax import gaussian, quadrature
 from gmjax._types import StepFn
 from gmjax.filters._core import (
     LocalFilter,
@@ -112,7 +111,7 @@ def local_sckf(f: StepFn, h: StepFn, angle_dims: tuple[int, ...] = ()) -> LocalF
         chi = (X - m).T * scale  # eq 19
         Pxz = chi @ Zc.T  # eq 18
         # eq 20: W = (Pxz / S_zz^T) / S_zz, i.e. W = Pxz (S_zz S_zz^T)^{-1}
-        W = solve_triangular(S_zz.T, solve_triangular(S_zz, Pxz.T, lower=True), lower=False).T
+        W = gaussian.cho_solve_small(S_zz, Pxz.T).T
         y = wrap_angles(z - z_hat, angle_dims)
         mean = m + W @ y  # eq 21
         S_new, bad_post = _fix_factor(tria(jnp.concatenate([chi - W @ Zc, W @ S_R], axis=1)))  # eq 22

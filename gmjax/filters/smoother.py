@@ -26,7 +26,6 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import cho_solve
 from jax.scipy.special import logsumexp
 
 from gmjax import gaussian, quadrature
@@ -117,7 +116,7 @@ def predict_with_cross(
 def _gain(C: Array, P_pred: Array) -> Array:
     """``G = C (P^-)^{-1}`` with a (repaired) Cholesky factor of ``P^-``."""
     L = safe_chol(P_pred).factor
-    return cho_solve((L, True), C.T).T
+    return gaussian.cho_solve_small(L, C.T).T
 
 
 def _rts_scan(backward, means: Array, covs: Array, xs_next) -> SmootherResult:
