@@ -177,6 +177,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--dtypes", nargs="+", default=["float64", "float32"])
     parser.add_argument("--note", default="")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per case (retried once)")
+    parser.add_argument(
+        "--merge-with",
+        default=None,
+        help="a previous results JSON: its rows of the cases not run now are kept (to rerun some cases)",
+    )
     parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
@@ -216,6 +221,18 @@ def main(argv: list[str] | None = None) -> dict:
                     )
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
+    if args.merge_with:
+        import json
+
+        with open(args.merge_with) as f:
+            previous = json.load(f)
+        rerun = {(r["system"], r["filter"], r["dtype"]) for r in rows}
+        kept = [r for r in previous["rows"] if (r["system"], r["filter"], r["dtype"]) not in rerun]
+        rows = kept + rows
+        args.note += f" Rows of {len({(r['system'], r['filter'], r['dtype']) for r in kept})} cases from an earlier run"
+        args.note += (
+            f" (load {' '.join(previous['loadavg_before'])} / {' '.join(previous['loadavg_after'])})."
+        )
     header = [
         "system",
         "filter",

@@ -209,8 +209,17 @@ def _inv_quad(x, P):
         x0, x1 = x[..., 0], x[..., 1]
         return (e * x0 * x0 - 2.0 * b * x0 * x1 + a * x1 * x1) / (a * e - b * b)
     L = _chol(P)
-    r = solve_triangular(L, x[..., None], lower=True)[..., 0]
-    return jnp.sum(r * r, -1)
+    if d > 4:
+        r = solve_triangular(L, x[..., None], lower=True)[..., 0]
+        return jnp.sum(r * r, -1)
+    x = jnp.broadcast_to(x, jnp.broadcast_shapes(x.shape, L.shape[:-1]))
+    rs = []  # forward substitution, unrolled and broadcast (a batched solve_triangular calls LAPACK per matrix)
+    for i in range(d):
+        rs.append(
+            (x[..., i] - sum((L[..., i, k] * rs[k] for k in range(i)), jnp.zeros_like(x[..., i])))
+            / L[..., i, i]
+        )
+    return sum(r * r for r in rs)
 
 
 def _logpdf(x, m, P):
@@ -237,7 +246,16 @@ def _inv(P):
         )
         return 0.5 * (out + jnp.swapaxes(out, -1, -2))
     L = _chol(P)
-    Linv = solve_triangular(L, jnp.broadcast_to(jnp.eye(d, dtype=P.dtype), P.shape), lower=True)
+    if d > 4:
+        Linv = solve_triangular(L, jnp.broadcast_to(jnp.eye(d, dtype=P.dtype), P.shape), lower=True)
+    else:  # L^{-1} unrolled
+        zero = jnp.zeros_like(L[..., 0, 0])
+        inv = [[zero] * d for _ in range(d)]
+        for i in range(d):
+            inv[i][i] = 1.0 / L[..., i, i]
+            for j in range(i):
+                inv[i][j] = -sum((L[..., i, k] * inv[k][j] for k in range(j, i)), zero) * inv[i][i]
+        Linv = jnp.stack([jnp.stack(row, -1) for row in inv], -2)
     return jnp.swapaxes(Linv, -1, -2) @ Linv
 
 
