@@ -55,6 +55,30 @@ def time_python(fn: Callable, *args: Any, repeats: int = 3) -> dict[str, float]:
     return {"run_min_s": min(runs), "run_median_s": statistics.median(runs)}
 
 
+def run_in_fresh_process(script: str, payload: Any, timeout: float, tries: int = 2) -> tuple[Any, str | None]:
+    """Run ``python script --one <payload as JSON>`` in a fresh process and parse its last stdout line.
+
+    Returns ``(result, None)``, or ``(None, why)`` when the process failed, or gave no result within
+    ``timeout`` seconds ``tries`` times. A fresh process per case: programs with LAPACK calls inside
+    loops hung in the XLA CPU runtime (every thread idle on a futex), and a hung case must not stop a
+    benchmark.
+    """
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, script, "--one", json.dumps(payload)]
+    for _ in range(tries):
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            continue
+        if res.returncode != 0:
+            lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+            return None, (lines[-1] if lines else f"exit code {res.returncode}")
+        return json.loads(res.stdout.strip().splitlines()[-1]), None
+    return None, f"no result within {timeout:.0f} s ({tries} tries)"
+
+
 def machine_info() -> dict[str, Any]:
     """Where the numbers were measured."""
     return {

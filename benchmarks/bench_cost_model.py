@@ -113,25 +113,6 @@ def measure(name: str, N: int, K: int, d: int, repeats: int) -> dict:
     }
 
 
-def _measure_in_subprocess(name: str, N: int, K: int, d: int, repeats: int, timeout: float) -> dict | None:
-    """:func:`measure` in a fresh process (``None`` if it gives no result within ``timeout`` seconds).
-
-    A fresh process per configuration: one long process compiling many programs hung twice in the XLA
-    CPU runtime (every thread waiting on a futex); a hung configuration is recorded and skipped.
-    """
-    import json
-    import subprocess
-
-    cmd = [sys.executable, __file__, "--one", json.dumps([name, N, K, d, repeats])]
-    try:
-        res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return None
-    if res.returncode != 0:
-        raise SystemExit(f"{name} N={N} K={K} d={d} failed:\n{res.stderr[-3000:]}")
-    return json.loads(res.stdout.strip().splitlines()[-1])
-
-
 def _predicted(done: list[tuple[float, float]], size: float) -> float:
     """Run seconds at ``size`` extrapolated from the last two points (growth exponent at least 1)."""
     (s1, t1) = done[-1]
@@ -168,7 +149,7 @@ def main(argv: list[str] | None = None) -> dict:
 
         print(json.dumps(measure(*json.loads(args.one))))
         return {}
-    from _common import markdown_table, write_results
+    from _common import markdown_table, run_in_fresh_process, write_results
 
     axes = QUICK_AXES if args.quick else AXES
     base = {"N": 100, "K": 5, "d": 1} if args.quick else BASE
@@ -180,9 +161,10 @@ def main(argv: list[str] | None = None) -> dict:
         for axis, sizes in axes.items():
             for size in sizes:
                 cfg = dict(base, **{axis: size})
-                r = _measure_in_subprocess(name, cfg["N"], cfg["K"], cfg["d"], args.repeats, args.timeout)
-                if r is None:  # one retry in a fresh process: the XLA CPU hang is intermittent
-                    r = _measure_in_subprocess(name, cfg["N"], cfg["K"], cfg["d"], args.repeats, args.timeout)
+                payload = [name, cfg["N"], cfg["K"], cfg["d"], args.repeats]
+                r, why = run_in_fresh_process(__file__, payload, args.timeout)
+                if why is not None and not why.startswith("no result"):
+                    raise SystemExit(f"{name} N={cfg['N']} K={cfg['K']} d={cfg['d']} failed: {why}")
                 if r is None:
                     hung.append(f"{name} N={cfg['N']} K={cfg['K']} d={cfg['d']}")
                     print(

@@ -23,7 +23,7 @@ Usage: python benchmarks/bench_gsf_kernel.py [--runs 1000] [--runs-runnalls 200]
        [--note "..."]
 
 Each case (system, filter, dtype) runs in a fresh process, retried once if it gives no result within
-``--timeout`` seconds (a long process hung in the XLA CPU runtime; see ``_case_in_subprocess``).
+``--timeout`` seconds (a long process hung in the XLA CPU runtime; see ``_common.run_in_fresh_process``).
 """
 
 from __future__ import annotations
@@ -137,28 +137,6 @@ def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: 
     return rows
 
 
-def _case_in_subprocess(system: str, reducer: str, dtype: str, runs: int, repeats: int, timeout: float):
-    """:func:`case` in a fresh process: ``(rows, None)``, or ``(None, why)`` when it failed or gave no
-    result within ``timeout`` seconds twice (a long process hung in the XLA CPU runtime, every thread
-    waiting on a futex, with no pattern we could reproduce; a fresh process avoids it)."""
-    import json
-    import subprocess
-
-    cmd = [sys.executable, __file__, "--one", json.dumps([system, reducer, dtype, runs, repeats])]
-    why = ""
-    for _ in range(2):
-        try:
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-        except subprocess.TimeoutExpired:
-            why = f"no result within {timeout:.0f} s (twice)"
-            continue
-        if res.returncode != 0:
-            lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-            return None, (lines[-1] if lines else f"exit code {res.returncode}")
-        return json.loads(res.stdout.strip().splitlines()[-1]), None
-    return None, why
-
-
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=1000)
@@ -191,7 +169,7 @@ def main(argv: list[str] | None = None) -> dict:
         system, reducer, dtype_name, runs, repeats = json.loads(args.one)
         print(json.dumps(case(system, reducer, jnp.dtype(dtype_name).type, runs, repeats)))
         return {}
-    from _common import markdown_table, write_results
+    from _common import markdown_table, run_in_fresh_process, write_results
 
     n_runs, repeats = (100, 2) if args.quick else (args.runs, args.repeats)
     dtypes = [jnp.float64] if args.quick else [jnp.dtype(name).type for name in args.dtypes]
@@ -205,7 +183,9 @@ def main(argv: list[str] | None = None) -> dict:
                 cap = {"runnalls": args.runs_runnalls, "pcm": args.runs_pcm}.get(reducer, n_runs)
                 runs = min(n_runs, cap)
                 name = jnp.dtype(dtype).name
-                got, why = _case_in_subprocess(system, reducer, name, runs, repeats, args.timeout)
+                got, why = run_in_fresh_process(
+                    __file__, [system, reducer, name, runs, repeats], args.timeout
+                )
                 if got is None:
                     failed.append(f"{system} {reducer} {name}: {why}")
                     print(f"FAILED {failed[-1]}", flush=True)
