@@ -31,8 +31,9 @@ The clustering of both seeds, written as fixed-size array programs that run unde
    the lowest index is kept.
 4. **Pairwise fine-tuning** (seed 000 eqs 26–28 Step 2–3; seed 003 eqs 7–9). Cluster pairs
    ``(i, j)``, ``i < j``, are visited once in lexicographic order (the static
-   list of ``K(K-1)/2`` pairs; a bounded ``lax.while_loop`` jumps over pairs that share nothing,
-   which are no-ops), each time in the *current* state of the clusters:
+   list of ``K(K-1)/2`` pairs; a bounded ``lax.while_loop`` jumps straight to the next pair that
+   shares a component, the others being no-ops, and clusters are rows of bits), each time in the
+   *current* state of the clusters:
 
    * Situation 1, ``C_i ∩ C_j = ∅``: nothing changes.
    * identical clusters (can arise after earlier pairs): combined into ``C_i`` (Step 1 again).
@@ -172,80 +173,127 @@ def combine_identical(membership: Array) -> Array:
     return membership & ~dup[:, None]
 
 
-def _pair_step(dist: Array, membership: Array, pair: Array, absorb: bool = False) -> Array:
-    """Fine-tune one cluster pair ``(i, j)`` (seed 000 eqs 26–28); see the module docstring."""
-    i, j = pair[0], pair[1]
-    ci, cj = membership[i], membership[j]
-    ov = ci & cj
-    any_ov = jnp.any(ov)
-    j_in_i = jnp.all(cj <= ci)  # C_j ⊆ C_i
-    i_in_j = jnp.all(ci <= cj)  # C_i ⊆ C_j
-    identical = j_in_i & i_in_j
-    # Situation 2: eq 27 renew, eq 28 nearest-member distance, Step 2.3 re-assignment.
-    ri, rj = ci & ~ov, cj & ~ov
+# Cluster rows are packed as bits of ``uint32`` words, ``(..., K) bool -> (..., W) uint32`` with
+# ``W = ceil(K / 32)``: the overlap sweep's set operations are then a few word operations per row.
+_BITS = 32
+
+
+def _pack(rows: Array) -> Array:
+    """``(..., K)`` bool -> ``(..., W)`` uint32, component ``m`` is bit ``m % 32`` of word ``m // 32``."""
+    K = rows.shape[-1]
+    W = -(-K // _BITS)
+    padded = jnp.pad(rows, [(0, 0)] * (rows.ndim - 1) + [(0, W * _BITS - K)])
+    words = padded.reshape(rows.shape[:-1] + (W, _BITS))
+    bit = jnp.left_shift(jnp.uint32(1), jnp.arange(_BITS, dtype=jnp.uint32))
+    return jnp.sum(jnp.where(words, bit, jnp.uint32(0)), axis=-1, dtype=jnp.uint32)
+
+
+def _unpack(words: Array, K: int) -> Array:
+    """Inverse of :func:`_pack`: ``(..., W)`` uint32 -> ``(..., K)`` bool."""
+    shifts = jnp.arange(_BITS, dtype=jnp.uint32)
+    bits = (jnp.right_shift(words[..., None], shifts) & jnp.uint32(1)) == 1
+    return bits.reshape(words.shape[:-1] + (words.shape[-1] * _BITS,))[..., :K]
+
+
+def _shares(a: Array, b: Array) -> Array:
+    """Whether packed rows ``a`` and ``b`` (broadcast) have a component in common."""
+    return jnp.any((a & b) != 0, axis=-1)
+
+
+def _next_sharing_pair(rows: Array, i: Array, j: Array) -> tuple[Array, Array, Array]:
+    """The first pair ``(i', j') >= (i, j)`` in lexicographic order, ``i' < j'``, whose packed rows
+    ``(K, W)`` share a component: ``(found, i', j')``. Pairs in between are Situation 1 (no-ops)."""
+    K = rows.shape[0]
+    idx = jnp.arange(K, dtype=i.dtype)
+    in_row = _shares(rows, rows[i]) & (idx >= j) & (idx > i)
+    # later[k] = the union of the rows after k; row k shares with a later row iff rows[k] & later[k]
+    after = jax.lax.associative_scan(jnp.bitwise_or, rows, reverse=True, axis=0)
+    later = jnp.concatenate([after[1:], jnp.zeros_like(rows[:1])], axis=0)
+    has_later = _shares(rows, later) & (idx > i)
+    here = jnp.any(in_row)
+    i_next = jnp.where(here, i, jnp.argmax(has_later).astype(i.dtype))
+    j_next = jnp.where(here, in_row, _shares(rows, rows[i_next]) & (idx > i_next))
+    return here | jnp.any(has_later), i_next, jnp.argmax(j_next).astype(i.dtype)
+
+
+def _split_pair(rows: Array, i: Array, j: Array, dist: Array, absorb: bool) -> Array:
+    """Fine-tune the sharing pair ``(i, j)`` of packed rows ``(K, W)`` (seed 000 eqs 26–28); see the
+    module docstring."""
+    K = rows.shape[0]
+    ci, cj = rows[i], rows[j]
+    ov, ri, rj = ci & cj, ci & ~cj, cj & ~ci  # eq 27: the renewed clusters C_i*, C_j*
+    j_in_i = jnp.all(rj == 0)  # C_j ⊆ C_i
+    i_in_j = jnp.all(ri == 0)  # C_i ⊆ C_j
+    # Situation 2: eq 28 nearest-member distance of every component to each renewed cluster
     inf = jnp.asarray(jnp.inf, dist.dtype)
-    di = jnp.min(jnp.where(ri[:, None], dist, inf), axis=0)  # (K,) distance of each m to C_i*
-    dj = jnp.min(jnp.where(rj[:, None], dist, inf), axis=0)
-    to_i = di <= dj
-    s2_i = ri | (ov & to_i)
-    s2_j = rj | (ov & ~to_i)
+    di = jnp.min(jnp.where(_unpack(ri, K)[:, None], dist, inf), axis=0)
+    dj = jnp.min(jnp.where(_unpack(rj, K)[:, None], dist, inf), axis=0)
+    to_i = ov & _pack(di <= dj)  # ties to the lower-indexed cluster i
+    s2_i, s2_j = ri | to_i, rj | (ov & ~to_i)
     empty = jnp.zeros_like(ci)
-    if absorb:  # Situation 3, seed 003 H2: the superset keeps everything.
+    if absorb:  # Situation 3, seed 003 H2: the superset keeps everything
         s3_i = jnp.where(j_in_i, ci, empty)
         s3_j = jnp.where(j_in_i, empty, cj)
-    else:  # Situation 3, seed 000: the subset survives, the superset keeps its complement.
-        s3_i = jnp.where(j_in_i, ci & ~cj, ci)
-        s3_j = jnp.where(j_in_i, cj, cj & ~ci)
-    sub = j_in_i | i_in_j
-    new_i = jnp.where(identical, ci, jnp.where(sub, s3_i, s2_i))
-    new_j = jnp.where(identical, empty, jnp.where(sub, s3_j, s2_j))
-    new_i = jnp.where(any_ov, new_i, ci)
-    new_j = jnp.where(any_ov, new_j, cj)
-    return membership.at[i].set(new_i).at[j].set(new_j)
+    else:  # Situation 3, seed 000: the subset survives, the superset keeps its complement
+        s3_i = jnp.where(j_in_i, ri, ci)
+        s3_j = jnp.where(j_in_i, cj, rj)
+    identical = j_in_i & i_in_j
+    new_i = jnp.where(identical, ci, jnp.where(j_in_i | i_in_j, s3_i, s2_i))
+    new_j = jnp.where(identical, empty, jnp.where(j_in_i | i_in_j, s3_j, s2_j))
+    return rows.at[i].set(new_i).at[j].set(new_j)
 
 
 @partial(jax.jit, static_argnames=("subset_rule",))
 def resolve_overlaps(membership: Array, dist: Array, *, subset_rule: str = "split") -> Array:
     """Turn overlapping row clusters into a partition (seed 000 eqs 26–28 Steps 2–3).
 
+    A stack of clusterings of the same components (one per ``λ`` of a grid, say) is resolved in one
+    loop that visits only the sharing pairs of each clustering in turn, so under ``vmap`` it runs
+    the batch's largest *total* number of pair splits.
+
     Args:
-        membership: ``(K, K)`` bool, row ``c`` is cluster ``c``.
+        membership: ``(K, K)`` or ``(G, K, K)`` bool, row ``c`` is cluster ``c``.
         dist: ``(K, K)`` Euclidean centre distances (eq 28).
         subset_rule: ``"split"`` (seed 000 Situation 3) or ``"absorb"`` (seed 003 H2).
 
     Returns:
-        ``(K, K)`` bool with pairwise-disjoint rows covering the same components.
+        ``membership``'s shape, bool, with pairwise-disjoint rows covering the same components.
     """
     if subset_rule not in ("split", "absorb"):
         raise ValueError(f"subset_rule: expected 'split' or 'absorb', got {subset_rule!r}")
-    absorb = subset_rule == "absorb"
-    K = membership.shape[0]
+    if membership.ndim not in (2, 3):
+        raise ValueError(f"membership: expected shape (K, K) or (G, K, K), got {membership.shape}")
+    if membership.ndim == 2:
+        return resolve_overlaps(membership[None], dist, subset_rule=subset_rule)[0]
+    G, K = membership.shape[0], membership.shape[-1]
     if K < 2:
         return membership
-    idx = jnp.arange(K)
-    max_iter = K * (K - 1) // 2 + K  # every pair once plus one row advance per row
+    absorb = subset_rule == "absorb"
+    # Each step splits one sharing pair, whose position (i, j) then strictly advances, or moves on
+    # to the next clustering: at most G * (K(K-1)/2 + 1) steps.
+    max_steps = G * (K * (K - 1) // 2 + 1)
 
-    # Visit the pairs (i, j), i < j, in lexicographic order, but jump straight to the next j
-    # whose cluster currently shares a component with cluster i: the skipped pairs are
-    # Situation 1 (no-ops), so this is the full sweep at a cost proportional to the overlaps.
     def cond(state):
-        _, i, _, it = state
-        return (i < K - 1) & (it < max_iter)
+        _, g, _, _, step = state
+        return (g < G) & (step < max_steps)
 
     def body(state):
-        m, i, j, it = state
-        shares = jnp.any(m[i][None, :] & m, axis=1) & (idx >= j) & (idx > i)
-        found = jnp.any(shares)
-        jj = jnp.argmax(shares).astype(i.dtype)
-        m_new = _pair_step(dist, m, jnp.stack([i, jj]), absorb)
-        m = jax.tree_util.tree_map(lambda a, b: jnp.where(found, a, b), m_new, m)
-        i_next = jnp.where(found, i, i + 1)
-        j_next = jnp.where(found, jj + 1, i + 2)
-        return m, i_next, j_next, it + 1
+        packed, g, i, j, step = state
+        rows = packed[g]
+        found, i, j = _next_sharing_pair(rows, i, j)
+        packed = packed.at[g].set(jnp.where(found, _split_pair(rows, i, j, dist, absorb), rows))
+        zero = jnp.zeros_like(i)
+        return (
+            packed,
+            jnp.where(found, g, g + 1),
+            jnp.where(found, i, zero),
+            jnp.where(found, j + 1, zero + 1),
+            step + 1,
+        )
 
     zero = jnp.zeros((), jnp.int32)
-    out, *_ = jax.lax.while_loop(cond, body, (membership, zero, zero + 1, zero))
-    return out
+    packed, *_ = jax.lax.while_loop(cond, body, (_pack(membership), zero, zero, zero + 1, zero))
+    return _unpack(packed, K)
 
 
 def labels_from_membership(membership: Array, mask: Mask) -> Array:
@@ -270,7 +318,8 @@ def gauss_cluster(
 
     Args:
         gm: mixture with capacity ``K`` (weights are not used).
-        lam: ``()`` confidence multiplier, ``σ* = λσ`` (Assumption 1).
+        lam: ``()`` confidence multiplier, ``σ* = λσ`` (Assumption 1), or ``(G,)`` multipliers (a
+            search grid): the ``G`` clusterings are resolved in one loop (:func:`resolve_overlaps`).
         dims: static clustering dimensions (default all).
         triangular: seed 003's upper-triangular judgment matrix (eqs 4, 6) instead of seed 000's
             symmetric one (eqs 24–25).
@@ -280,17 +329,24 @@ def gauss_cluster(
             them across many ``λ``).
 
     Returns:
-        A :class:`ClusterResult`; hard clustering is piecewise constant in ``λ`` (it changes only
-        where ``λ`` crosses some ``δ_ij``).
+        A :class:`ClusterResult`, with a leading ``(G,)`` axis on every field when ``lam`` is
+        ``(G,)``; hard clustering is piecewise constant in ``λ`` (it changes only where ``λ``
+        crosses some ``δ_ij``).
     """
     dims = None if dims is None else tuple(int(i) for i in dims)
     if delta is None:
         delta = similarity_thresholds(gm, dims)
     if dist is None:
         dist = centre_distances(gm, dims)
-    radius = jnp.asarray(range_scale, delta.dtype) * jnp.asarray(lam, delta.dtype)
-    r = judgment_matrix(delta, radius, gm.mask, triangular=triangular)
-    membership = resolve_overlaps(combine_identical(r), dist, subset_rule=subset_rule)
-    labels = labels_from_membership(membership, gm.mask)
-    n_clusters = jnp.sum(jnp.any(membership, axis=1).astype(jnp.int32))
-    return ClusterResult(labels, membership, n_clusters, r)
+    lam = jnp.asarray(lam, delta.dtype)
+    if lam.ndim > 1:
+        raise ValueError(f"lam: expected a scalar or a (G,) grid, got shape {lam.shape}")
+    radius = jnp.asarray(range_scale, delta.dtype) * jnp.atleast_1d(lam)
+    r = jax.vmap(lambda rad: judgment_matrix(delta, rad, gm.mask, triangular=triangular))(radius)
+    membership = resolve_overlaps(jax.vmap(combine_identical)(r), dist, subset_rule=subset_rule)
+    labels = jax.vmap(labels_from_membership, in_axes=(0, None))(membership, gm.mask)
+    n_clusters = jnp.sum(jnp.any(membership, axis=-1).astype(jnp.int32), axis=-1)
+    result = ClusterResult(labels, membership, n_clusters, r)
+    if lam.ndim == 0:
+        return ClusterResult(*(a[0] for a in result))
+    return result

@@ -42,12 +42,7 @@ import jax.numpy as jnp
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture
-from gmjax.reduction.clustering import (
-    ClusterResult,
-    centre_distances,
-    gauss_cluster,
-    similarity_thresholds,
-)
+from gmjax.reduction.clustering import centre_distances, gauss_cluster, similarity_thresholds
 
 __all__ = [
     "SearchResult",
@@ -468,8 +463,8 @@ def search_confidence(
     overlaps = self_overlaps(gm)
     info = gaussian.spd_inv(gm.covs) if method == "ci" else None
 
-    def evaluate(lam):
-        res: ClusterResult = gauss_cluster(
+    def cluster(lam):
+        return gauss_cluster(
             gm,
             lam,
             triangular=triangular,
@@ -477,10 +472,12 @@ def search_confidence(
             range_scale=range_scale,
             delta=delta,
             dist=dist,
-        )
+        ).labels
+
+    def evaluate_labels(labels):
         value, merged, n = hard_eise(
             gm,
-            res.labels,
+            labels,
             alpha=alpha,
             method=method,
             regularizer=regularizer,
@@ -488,9 +485,13 @@ def search_confidence(
             overlaps=overlaps,
             info=info,
         )
-        return value, res.labels, merged, n
+        return value, labels, merged, n
 
-    grid_eise, grid_labels, grid_merged, grid_counts = jax.lax.map(evaluate, grid)
+    def evaluate(lam):
+        return evaluate_labels(cluster(lam))
+
+    # all grid clusterings in one overlap sweep, then the grid's merges and EISEs side by side
+    grid_eise, grid_labels, grid_merged, grid_counts = jax.vmap(evaluate_labels)(cluster(grid))
     best = jnp.argmin(grid_eise)
     lam_grid = grid[best]
     eise_grid = grid_eise[best]

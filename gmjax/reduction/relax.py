@@ -303,7 +303,7 @@ def soft_membership(
     )
     labels = cluster(lam_sg)
     grid = jnp.asarray(grid, dtype)
-    grid_labels = jax.lax.map(cluster, grid)
+    grid_labels = cluster(grid)  # (G, K), one overlap sweep
     T = jnp.asarray(temperature, dtype)
     pos = T > 0
     A_soft, pi = relaxed_membership(lam, grid, grid_labels, jnp.where(pos, T, 1.0))
