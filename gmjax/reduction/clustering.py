@@ -265,10 +265,25 @@ def resolve_overlaps(membership: Array, dist: Array, *, subset_rule: str = "spli
         raise ValueError(f"membership: expected shape (K, K) or (G, K, K), got {membership.shape}")
     if membership.ndim == 2:
         return resolve_overlaps(membership[None], dist, subset_rule=subset_rule)[0]
-    G, K = membership.shape[0], membership.shape[-1]
+    K = membership.shape[-1]
     if K < 2:
         return membership
-    absorb = subset_rule == "absorb"
+    return _unpack(_resolve_packed(_pack(membership), dist, subset_rule == "absorb"), K)
+
+
+def _combine_identical_packed(rows: Array) -> Array:
+    """:func:`combine_identical` on packed rows ``(K, W)``."""
+    K = rows.shape[0]
+    same = jnp.all(rows[:, None, :] == rows[None, :, :], axis=-1)  # (K, K)
+    lower = jnp.asarray(np.tril(np.ones((K, K), bool), k=-1))  # j < i
+    nonempty = jnp.any(rows != 0, axis=-1)
+    dup = jnp.any(same & lower & nonempty[None, :], axis=-1)
+    return jnp.where(dup[:, None], jnp.zeros_like(rows), rows)
+
+
+def _resolve_packed(packed: Array, dist: Array, absorb: bool) -> Array:
+    """:func:`resolve_overlaps` on packed rows ``(G, K, W)``."""
+    G, K = packed.shape[0], packed.shape[1]
     # Each step splits one sharing pair, whose position (i, j) then strictly advances, or moves on
     # to the next clustering: at most G * (K(K-1)/2 + 1) steps.
     max_steps = G * (K * (K - 1) // 2 + 1)
@@ -292,8 +307,8 @@ def resolve_overlaps(membership: Array, dist: Array, *, subset_rule: str = "spli
         )
 
     zero = jnp.zeros((), jnp.int32)
-    packed, *_ = jax.lax.while_loop(cond, body, (_pack(membership), zero, zero, zero + 1, zero))
-    return _unpack(packed, K)
+    packed, *_ = jax.lax.while_loop(cond, body, (packed, zero, zero, zero + 1, zero))
+    return packed
 
 
 def labels_from_membership(membership: Array, mask: Mask) -> Array:
@@ -338,12 +353,19 @@ def gauss_cluster(
         delta = similarity_thresholds(gm, dims)
     if dist is None:
         dist = centre_distances(gm, dims)
+    # materialised once: otherwise XLA re-evaluates δ inside the judgment of every grid point
+    delta, dist = jax.lax.optimization_barrier((delta, dist))
     lam = jnp.asarray(lam, delta.dtype)
     if lam.ndim > 1:
         raise ValueError(f"lam: expected a scalar or a (G,) grid, got shape {lam.shape}")
     radius = jnp.asarray(range_scale, delta.dtype) * jnp.atleast_1d(lam)
+    if subset_rule not in ("split", "absorb"):
+        raise ValueError(f"subset_rule: expected 'split' or 'absorb', got {subset_rule!r}")
     r = jax.vmap(lambda rad: judgment_matrix(delta, rad, gm.mask, triangular=triangular))(radius)
-    membership = resolve_overlaps(jax.vmap(combine_identical)(r), dist, subset_rule=subset_rule)
+    # Packed at once: the sweep, Step 1 and the pair search then touch words, not (K, K) booleans
+    # (and XLA does not re-evaluate δ inside each of Step 1's (K, K, K) comparisons).
+    packed = jax.vmap(_combine_identical_packed)(_pack(r))
+    membership = _unpack(_resolve_packed(packed, dist, subset_rule == "absorb"), gm.capacity)
     labels = jax.vmap(labels_from_membership, in_axes=(0, None))(membership, gm.mask)
     n_clusters = jnp.sum(jnp.any(membership, axis=-1).astype(jnp.int32), axis=-1)
     result = ClusterResult(labels, membership, n_clusters, r)
