@@ -140,6 +140,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--timeout", type=float, default=300.0, help="seconds per configuration (retried once)"
     )
+    parser.add_argument("--filters", nargs="+", choices=FILTERS, default=list(FILTERS))
+    parser.add_argument(
+        "--merge-with",
+        default=None,
+        help="a previous results JSON: its rows of the filters not run now are kept (to rerun some filters)",
+    )
     parser.add_argument("--note", default="")
     parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -157,7 +163,7 @@ def main(argv: list[str] | None = None) -> dict:
         load_before = f.read().split()[:3]
     rows: list[dict] = []
     hung: list[str] = []
-    for name in FILTERS:
+    for name in args.filters:
         for axis, sizes in axes.items():
             for size in sizes:
                 cfg = dict(base, **{axis: size})
@@ -187,19 +193,33 @@ def main(argv: list[str] | None = None) -> dict:
                     break
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
+    if args.merge_with:
+        import json
+
+        with open(args.merge_with) as f:
+            previous = json.load(f)
+        kept = [r for r in previous["rows"] if r["filter"] not in args.filters]
+        rows = sorted(kept + rows, key=lambda r: FILTERS.index(r["filter"]))
+        hung = [h for h in previous["hung"] if not h.startswith(tuple(args.filters))] + hung
+        names = sorted({r["filter"] for r in kept}, key=FILTERS.index)
+        args.note += f" Rows of {', '.join(names)} from an earlier run"
+        args.note += (
+            f" (load {' '.join(previous['loadavg_before'])} / {' '.join(previous['loadavg_after'])})."
+        )
+    present = [name for name in FILTERS if any(r["filter"] == name for r in rows)]
     slopes = {
         name: {
             axis: growth([(r[axis], r["run_s"]) for r in rows if r["filter"] == name and r["axis"] == axis])
             for axis in axes
         }
-        for name in FILTERS
+        for name in present
     }
     header = ["filter", "axis", "N", "K", "d", "µs / run-step", "run s", "compile s"]
     table = [
         [r["filter"], r["axis"], r["N"], r["K"], r["d"], r["us_per_run_step"], r["run_s"], r["compile_s"]]
         for r in rows
     ]
-    slope_rows = [[name] + [slopes[name][a] for a in axes] for name in FILTERS]
+    slope_rows = [[name] + [slopes[name][a] for a in axes] for name in present]
     md = (
         "# Cost model: µs per run-step of the GSFs against N, K and d\n\n"
         f"Synthetic model (`benchmarks/bench_cost_model.py`): EKF components, L = J = 2 noise components "
