@@ -196,6 +196,33 @@ def test_matches_numpy_reference(seed, d, triangular, rule):
         assert int(res.n_clusters) == sum(1 for c in clusters if c)
 
 
+@pytest.mark.parametrize("triangular, rule", [(False, "split"), (True, "absorb")])
+def test_grid_of_lambdas_equals_one_lambda_at_a_time_and_the_reference(triangular, rule):
+    """A (G,) grid is resolved in one sweep; each clustering equals the scalar call and the NumPy loop.
+    K = 40 needs two 32-bit words per packed row."""
+    K = 40
+    gm, means, covs = random_gm(np.random.default_rng(21), K, 2)
+    lams = jnp.asarray([0.5, 1.0, 2.0, 3.0, 4.5, 7.0])
+    grid = gauss_cluster(gm, lams, triangular=triangular, subset_rule=rule)
+    assert grid.labels.shape == (6, K) and grid.membership.shape == (6, K, K)
+    for g, lam in enumerate(lams):
+        one = gauss_cluster(gm, lam, triangular=triangular, subset_rule=rule)
+        for a, b in zip(one, grid):
+            np.testing.assert_array_equal(a, b[g])
+        expect = np.full(K, -1)
+        for head, members in enumerate(ref.cluster(means, covs, float(lam), triangular, rule)):
+            expect[list(members)] = head
+        np.testing.assert_array_equal(np.asarray(one.labels), expect)
+    # a stack of membership matrices is resolved as each one alone
+    stack = grid.judgment
+    dist = centre_distances(gm)
+    both = resolve_overlaps(stack, dist, subset_rule=rule)
+    for g in range(stack.shape[0]):
+        np.testing.assert_array_equal(both[g], resolve_overlaps(stack[g], dist, subset_rule=rule))
+    with pytest.raises(ValueError, match="lam"):
+        gauss_cluster(gm, jnp.ones((2, 2)))
+
+
 def test_partition_property():
     rng = np.random.default_rng(7)
     gm, _, _ = random_gm(rng, 10, 2, capacity=12)
