@@ -364,11 +364,14 @@ def _newton(fun, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
     Returns:
         ``(λ, converged, iterations)``.
     """
-    grad = jax.grad(fun)
+
+    def slope(lam):
+        return jax.jvp(fun, (lam,), (jnp.ones_like(lam),))[1]
 
     def body(carry, _):
         lam, f, done, ok, it = carry
-        g, h = jax.jvp(grad, (lam,), (jnp.ones_like(lam),))  # gradient and Hessian, one trace
+        # first and second derivative in forward mode (λ is a scalar: forward over forward is cheapest)
+        g, h = jax.jvp(slope, (lam,), (jnp.ones_like(lam),))
         finite = jnp.isfinite(g) & jnp.isfinite(h)
         convex = finite & (h > 0)
         raw = jnp.where(convex, g / jnp.where(convex, h, 1.0), jnp.sign(g) * radius)
