@@ -165,12 +165,7 @@ def judgment_matrix(delta: Array, radius: ArrayLike, mask: Mask, *, triangular: 
 
 def combine_identical(membership: Array) -> Array:
     """Empty every row equal to a lower-indexed row (seed 000 §III-B Step 1)."""
-    K = membership.shape[0]
-    same = jnp.all(membership[:, None, :] == membership[None, :, :], axis=-1)  # (K, K)
-    lower = jnp.asarray(np.tril(np.ones((K, K), bool), k=-1))  # j < i
-    nonempty = jnp.any(membership, axis=-1)
-    dup = jnp.any(same & lower & nonempty[None, :], axis=-1)
-    return membership & ~dup[:, None]
+    return _unpack(_combine_identical_packed(_pack(membership)), membership.shape[-1])
 
 
 # Cluster rows are packed as bits of ``uint32`` words, ``(..., K) bool -> (..., W) uint32`` with
