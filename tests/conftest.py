@@ -1,3 +1,5 @@
+import os
+
 import jax
 import pytest
 
@@ -5,11 +7,34 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 
 
+# --------------------------------------------------------------------------- compiled-code mappings
+# Every compiled XLA CPU program keeps about three memory mappings until JAX's caches drop it. A test
+# worker compiles thousands of programs; at Linux's vm.max_map_count (65530 by default) the next
+# mapping fails and XLA segfaults while compiling (seen twice near the end of a full run, in
+# test_tune, with ~40,000 mappings in the surviving worker). Dropping the caches when the count
+# passes a bound keeps every worker far from the limit (each test recompiles what it needs).
+_MAX_MAPPINGS = 20_000
+
+
+def _n_mappings() -> int:
+    try:
+        with open(f"/proc/{os.getpid()}/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux
+        return 0
+
+
+@pytest.fixture(autouse=True)
+def _bounded_compiled_code():
+    yield
+    if _n_mappings() > _MAX_MAPPINGS:
+        jax.clear_caches()
+
+
 # --------------------------------------------------------------------------- crashed xdist workers
-# CI once saw an xdist worker die mid-test (a native crash inside the XLA CPU runtime, in a test that
-# passes alone and in every other full run). A test whose worker crashes is run once more on a fresh
-# worker; the crash stays visible: the first attempt is reported as "rerun" and listed in the summary,
-# and a second crash fails the test.
+# Should a worker still die mid-test in native code, its test is run once more on a fresh worker; the
+# crash stays visible: the first attempt is reported as "rerun" and listed in the summary, and a
+# second crash fails the test.
 _crashed: list[str] = []
 
 
