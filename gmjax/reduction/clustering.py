@@ -254,8 +254,7 @@ def resolve_overlaps(membership: Array, dist: Array, *, subset_rule: str = "spli
     Returns:
         ``membership``'s shape, bool, with pairwise-disjoint rows covering the same components.
     """
-    if subset_rule not in ("split", "absorb"):
-        raise ValueError(f"subset_rule: expected 'split' or 'absorb', got {subset_rule!r}")
+    absorb = _is_absorb(subset_rule)
     if membership.ndim not in (2, 3):
         raise ValueError(f"membership: expected shape (K, K) or (G, K, K), got {membership.shape}")
     if membership.ndim == 2:
@@ -263,7 +262,14 @@ def resolve_overlaps(membership: Array, dist: Array, *, subset_rule: str = "spli
     K = membership.shape[-1]
     if K < 2:
         return membership
-    return _unpack(_resolve_packed(_pack(membership), dist, subset_rule == "absorb"), K)
+    return _unpack(_resolve_packed(_pack(membership), dist, absorb), K)
+
+
+def _is_absorb(subset_rule: str) -> bool:
+    """Validate ``subset_rule``; whether it is seed 003's ``"absorb"``."""
+    if subset_rule not in ("split", "absorb"):
+        raise ValueError(f"subset_rule: expected 'split' or 'absorb', got {subset_rule!r}")
+    return subset_rule == "absorb"
 
 
 def _combine_identical_packed(rows: Array) -> Array:
@@ -354,13 +360,12 @@ def gauss_cluster(
     if lam.ndim > 1:
         raise ValueError(f"lam: expected a scalar or a (G,) grid, got shape {lam.shape}")
     radius = jnp.asarray(range_scale, delta.dtype) * jnp.atleast_1d(lam)
-    if subset_rule not in ("split", "absorb"):
-        raise ValueError(f"subset_rule: expected 'split' or 'absorb', got {subset_rule!r}")
+    absorb = _is_absorb(subset_rule)
     r = jax.vmap(lambda rad: judgment_matrix(delta, rad, gm.mask, triangular=triangular))(radius)
     # Packed at once: the sweep, Step 1 and the pair search then touch words, not (K, K) booleans
     # (and XLA does not re-evaluate δ inside each of Step 1's (K, K, K) comparisons).
     packed = jax.vmap(_combine_identical_packed)(_pack(r))
-    membership = _unpack(_resolve_packed(packed, dist, subset_rule == "absorb"), gm.capacity)
+    membership = _unpack(_resolve_packed(packed, dist, absorb), gm.capacity)
     labels = jax.vmap(labels_from_membership, in_axes=(0, None))(membership, gm.mask)
     n_clusters = jnp.sum(jnp.any(membership, axis=-1).astype(jnp.int32), axis=-1)
     result = ClusterResult(labels, membership, n_clusters, r)
