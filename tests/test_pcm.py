@@ -13,10 +13,12 @@ from gmjax.mixture import GaussianMixture, moments, pad
 from gmjax.reduction.clustering import gauss_cluster
 from gmjax.reduction.eise import (
     cluster_ise,
+    eise,
     hard_eise,
     merge_membership,
     onehot_membership,
     relaxed_eise,
+    relaxed_membership,
     search_confidence,
 )
 from gmjax.reduction.gmrcm import GMRCM, GMRCMState, gmrcm, init_state
@@ -195,6 +197,43 @@ def _grid_for(gm, G=11, lo=1.0, hi=3.0):
     counts = jax.vmap(lambda lab: jnp.unique(lab, size=K, fill_value=-1))(labels)
     counts = jnp.sum(counts >= 0, axis=1)
     return grid, labels, counts
+
+
+def _dense_relaxed_eise(lam, gm, grid, labels, counts, temperature, alpha, method):
+    """The relaxation by its definition: soft memberships, their merge, the closed-form EISE."""
+    A, pi = relaxed_membership(lam, grid, labels, temperature)
+    merged = merge_membership(gm, A, method)
+    n_soft = jnp.sum(pi * counts.astype(pi.dtype))
+    n_ref = jnp.sum(gm.mask.astype(jnp.int32))
+    return eise(gm, A, merged, n_soft, n_ref, alpha=alpha, clip=False)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, pytest.param(4, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["ci", "moment"])
+def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
+    """``relaxed_eise`` works from per-grid-point sums (eise._RelaxedParts); value and derivatives
+    equal the soft clusters merged and integrated directly, padding included."""
+    gm, *_ = random_gm(3 + d, n=9, d=d)
+    grid, labels, counts = _grid_for(gm)
+
+    def fast(lam):
+        return relaxed_eise(lam, gm, grid, labels, counts, temperature=0.2, alpha=0.01, method=method)
+
+    def dense(lam):
+        return _dense_relaxed_eise(lam, gm, grid, labels, counts, 0.2, 0.01, method)
+
+    def derivatives(f):  # forward over forward (as the Newton search takes them; compiles fastest)
+        def slope(lam):
+            return jax.jvp(f, (lam,), (jnp.ones_like(lam),))[1]
+
+        return jax.jit(jax.vmap(lambda lam: (f(lam), *jax.jvp(slope, (lam,), (jnp.ones_like(lam),)))))
+
+    lams = jnp.array([1.05, 1.5, 2.33, 2.9])
+    (f_fast, g_fast, h_fast), (f_dense, g_dense, h_dense) = derivatives(fast)(lams), derivatives(dense)(lams)
+    np.testing.assert_allclose(f_fast, f_dense, rtol=1e-13)
+    scale = 1e-12 * float(jnp.max(jnp.abs(f_dense)))
+    np.testing.assert_allclose(g_fast, g_dense, rtol=1e-9, atol=scale)
+    np.testing.assert_allclose(h_fast, h_dense, rtol=1e-9, atol=scale)
 
 
 def test_relaxed_eise_gradient_matches_finite_differences():

@@ -26,6 +26,13 @@ nothing to work with. We therefore run Newton on a smooth relaxation with *soft 
 * as ``τ → 0`` the relaxation tends to the hard EISE of the nearest grid point; for ``τ > 0`` it is
   ``C^∞`` in ``λ`` and ``jax.grad`` / ``jax.hessian`` give the Newton step.
 
+**Cost.** ``A(λ)`` enters the merge statistics linearly and ``J_hh`` bilinearly, so the search
+builds the per-grid-point sums once (``_RelaxedParts``: ``Σ ω``, ``Σ ω P^{-1}``, ``Σ ω P^{-1} u``
+or the moment sums per cluster, and the ``(G, G)`` matrix of ``J_hh`` cross sums); each relaxed
+evaluation then combines them with ``π(λ)`` and needs ``J_hr`` only for the ``G K`` pairs (component,
+the cluster a grid point puts it in). Equal to the dense soft merge to rounding
+(``tests/test_pcm.py``).
+
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
 :func:`_newton`); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
 is kept whenever Newton failed or did not do at least as well (``used_fallback`` in the result).
@@ -292,6 +299,108 @@ def relaxed_membership(
     return jnp.einsum("g,gkc->kc", pi, A_k), pi
 
 
+class _RelaxedParts(NamedTuple):
+    """The ``λ``-independent parts of one mixture's relaxed EISE over one grid (built once per search).
+
+    Every quantity the relaxation needs is linear (merge statistics) or bilinear (``J_hh``) in the
+    soft membership ``A(λ) = Σ_k π_k(λ) A_k``, so it is a ``π``-weighted sum of per-grid-point sums:
+
+    * ``weights`` ``(G, C)``: ``Σ_m [A_k]_mc w_m``;
+    * ``first`` ``(G, C, d)`` and ``second`` ``(G, C, d, d)``: for ``"ci"`` ``Σ ω P_m^{-1} u_m`` and
+      ``Σ ω P_m^{-1}``; for ``"moment"`` ``Σ ω (u_m - s_c)`` and ``Σ ω (P_m + (u_m - s_c)(u_m - s_c)^T)``
+      about the head's mean ``s_c`` (``shift``), which keeps the spread free of cancellation;
+    * ``hh`` ``(G, G)``: ``Σ_c (A_k w)_c^T S (A_l w)_c``, so ``Σ_c J_hh,c(λ) = π^T hh π``.
+    """
+
+    gm: GaussianMixture
+    grid: Array
+    labels: Array
+    counts: Array
+    weights: Array
+    first: Array
+    second: Array
+    shift: Array
+    hh: Array
+
+
+def _relaxed_parts(
+    gm: GaussianMixture,
+    grid: Array,
+    grid_labels: Array,
+    grid_counts: Array,
+    method: str,
+    *,
+    overlaps: Array | None = None,
+    info: Array | None = None,
+) -> _RelaxedParts:
+    """The per-grid-point sums of ``gm``'s hard clusterings ``grid_labels`` ``(G, K)`` at ``grid``
+    ``(G,)`` with ``N'`` ``grid_counts`` ``(G,)``; ``overlaps`` and ``info`` as in :func:`hard_eise`."""
+    dtype = gm.means.dtype
+    K = gm.capacity
+    w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
+    A = jax.vmap(lambda lab: onehot_membership(lab, K, dtype))(grid_labels)  # (G, K, C)
+    Aw = jnp.where(gm.mask[None, :, None], A, 0.0) * w[None, :, None]
+    S = self_overlaps(gm) if overlaps is None else overlaps
+    hh = jnp.einsum("gmc,mn,hnc->gh", Aw, S, Aw)
+    if method == "ci":
+        info = gaussian.spd_inv(gm.covs) if info is None else info
+        info = jnp.where(gm.mask[:, None, None], info, 0.0)
+        shift = jnp.zeros_like(gm.means)
+        first = jnp.einsum("gmc,mij,mj->gci", Aw, info, gm.means)
+        second = jnp.einsum("gmc,mij->gcij", Aw, info)
+    else:
+        shift = jnp.where(gm.mask[:, None], gm.means, 0.0)  # cluster c's head is slot c
+        dev = gm.means[None, :, :] - shift[:, None, :]  # (C, K, d): u_m - s_c
+        first = jnp.einsum("gmc,cmi->gci", Aw, dev)
+        second = jnp.einsum("gmc,mij->gcij", Aw, gm.covs) + jnp.einsum("gmc,cmi,cmj->gcij", Aw, dev, dev)
+    return _RelaxedParts(
+        gm, grid, grid_labels, grid_counts.astype(dtype), jnp.sum(Aw, axis=1), first, second, shift, hh
+    )
+
+
+def _relaxed_value(
+    parts: _RelaxedParts,
+    lam: ArrayLike,
+    *,
+    temperature: ArrayLike,
+    alpha: ArrayLike,
+    method: str,
+    regularizer: str,
+    ise_scale: float,
+) -> Array:
+    """The relaxed EISE at ``λ`` from its parts: ``O(G K d²)`` merges and ``G K`` cross terms."""
+    gm = parts.gm
+    dtype = gm.means.dtype
+    d = gm.dim
+    eye = jnp.eye(d, dtype=dtype)
+    pi = jax.nn.softmax(-0.5 * ((lam - parts.grid) / temperature) ** 2)  # (G,)
+    W = pi @ parts.weights  # (C,)
+    live = W > 0
+    W_safe = jnp.where(live, W, 1.0)
+    first = jnp.einsum("g,gci->ci", pi, parts.first) / W_safe[:, None]
+    second = jnp.einsum("g,gcij->cij", pi, parts.second) / W_safe[:, None, None]
+    if method == "ci":  # seed 000 eqs 38-39 with normalised weights
+        cov = gaussian.spd_inv(jnp.where(live[:, None, None], second, eye))
+        mu = jnp.einsum("cij,cj->ci", cov, first)
+    else:  # seed 003 eqs 16-18, about the head's mean
+        mu = parts.shift + first
+        cov = gaussian.symmetrize(second - first[:, :, None] * first[:, None, :])
+    mu = jnp.where(live[:, None], mu, 0.0)
+    cov = jnp.where(live[:, None, None], cov, eye)
+    # J_hr: component m against the cluster that grid point k puts it in, weighted by π_k (eq 35)
+    own = jnp.maximum(parts.labels, 0)  # (G, K)
+    valid = (parts.labels >= 0) & gm.mask[None, :] & live[own]
+    log_cross = gaussian.spd_logpdf(gm.means[None], mu[own], gm.covs[None] + cov[own])
+    w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
+    cross = jnp.exp(jnp.where(valid, log_cross, -jnp.inf)) * W[own] * w[None, :]
+    j_hr = pi @ jnp.sum(cross, axis=1)
+    j_rr = jnp.sum(jnp.where(live, W * W * jnp.exp(gaussian.spd_logpdf(mu, mu, 2.0 * cov)), 0.0))
+    j_hh = pi @ parts.hh @ pi
+    n_soft = pi @ parts.counts
+    n_ref = jnp.sum(gm.mask.astype(jnp.int32))
+    return ise_scale * (j_hh - 2.0 * j_hr + j_rr) + penalty(n_soft, n_ref, alpha, regularizer)
+
+
 def relaxed_eise(
     lam: ArrayLike,
     gm: GaussianMixture,
@@ -305,13 +414,23 @@ def relaxed_eise(
     regularizer: str = "exp",
     ise_scale: float = 0.5,
 ) -> Array:
-    """The smooth relaxation of the EISE at ``λ`` (module docstring); differentiable in ``λ``."""
-    A, pi = relaxed_membership(lam, grid, grid_labels, temperature)
-    merged = merge_membership(gm, A, method)
-    n_soft = jnp.sum(pi * grid_counts.astype(pi.dtype))
-    n_ref = jnp.sum(gm.mask.astype(jnp.int32))
-    return eise(
-        gm, A, merged, n_soft, n_ref, alpha=alpha, regularizer=regularizer, ise_scale=ise_scale, clip=False
+    """The smooth relaxation of the EISE at ``λ`` (module docstring); differentiable in ``λ``.
+
+    Equal (to rounding) to :func:`eise` with ``clip=False`` of the soft clusters
+    :func:`merge_membership` makes of :func:`relaxed_membership`'s ``A(λ)``, computed from
+    ``λ``-independent per-grid-point sums: ``O(G K d²)`` work per ``λ`` instead of the dense
+    soft merge's ``O(K² d³)`` (the module docstring's *Cost*).
+    """
+    _check_options(method, regularizer)
+    parts = _relaxed_parts(gm, grid, grid_labels, grid_counts, method)
+    return _relaxed_value(
+        parts,
+        lam,
+        temperature=temperature,
+        alpha=alpha,
+        method=method,
+        regularizer=regularizer,
+        ise_scale=ise_scale,
     )
 
 
@@ -362,7 +481,7 @@ def _newton(fun, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
     finite — *failed*.
 
     Returns:
-        ``(λ, converged, iterations)``.
+        ``(λ, fun(λ), converged, iterations)``.
     """
 
     def slope(lam):
@@ -400,8 +519,8 @@ def _newton(fun, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
 
     f0 = fun(lam0)
     init = (lam0, f0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
-    (lam, _, _, ok, it), _ = jax.lax.scan(body, init, None, length=steps)
-    return lam, ok, it
+    (lam, f, _, ok, it), _ = jax.lax.scan(body, init, None, length=steps)
+    return lam, f, ok, it
 
 
 @partial(
@@ -523,13 +642,12 @@ def search_confidence(
             jnp.ones((), bool),
         )
 
+    parts = _relaxed_parts(gm, grid, grid_labels, grid_counts, method, overlaps=overlaps, info=info)
+
     def relaxed(lam):
-        return relaxed_eise(
+        return _relaxed_value(
+            parts,
             lam,
-            gm,
-            grid,
-            grid_labels,
-            grid_counts,
             temperature=temperature,
             alpha=alpha,
             method=method,
@@ -538,7 +656,7 @@ def search_confidence(
         )
 
     tau = jnp.asarray(temperature, dtype)
-    lam_newton, newton_ok, iterations = _newton(
+    lam_newton, relaxed_newton, newton_ok, iterations = _newton(
         relaxed, lam_grid, lo, hi, newton_steps, jnp.asarray(tol, dtype), tau
     )
     eise_newton, labels_newton, merged_newton, n_newton = evaluate(lam_newton)
@@ -558,7 +676,7 @@ def search_confidence(
         eise_grid=eise_grid,
         lam_newton=lam_newton,
         eise_newton=eise_newton,
-        relaxed_newton=relaxed(lam_newton),
+        relaxed_newton=relaxed_newton,
         iterations=iterations,
         newton_ok=newton_ok,
         used_fallback=~use_newton,
