@@ -72,6 +72,27 @@ def symmetrize(a: ArrayLike) -> Array:
 _UNROLL_MAX_DIM = 6
 
 
+def _unrolled_elimination(a: Array, bad_pivot: float) -> tuple[list[list[Array]], list[Array]]:
+    """The Cholesky elimination of ``(..., d, d)`` ``a`` unrolled at trace time (``d <= 6``).
+
+    Returns the factor's entries ``cols[i][j]`` (``j <= i``; ``None`` above the diagonal) and the
+    pivots; a non-positive pivot's square root is taken of ``bad_pivot`` instead.
+    """
+    d = a.shape[-1]
+    cols: list[list[Array]] = [[None] * d for _ in range(d)]  # type: ignore[list-item]
+    pivots: list[Array] = []
+    zero = jnp.zeros_like(a[..., 0, 0])
+    for j in range(d):
+        diag = a[..., j, j] - sum((cols[j][k] ** 2 for k in range(j)), zero)
+        pivots.append(diag)
+        ljj = jnp.sqrt(jnp.where(diag > 0, diag, bad_pivot))
+        cols[j][j] = ljj
+        for i in range(j + 1, d):
+            off = a[..., i, j] - sum((cols[i][k] * cols[j][k] for k in range(j)), zero)
+            cols[i][j] = off / ljj
+    return cols, pivots
+
+
 def _cholesky(a: Array) -> Array:
     """Lower Cholesky factor; NaN where ``a`` is not positive definite.
 
@@ -81,36 +102,21 @@ def _cholesky(a: Array) -> Array:
     d = a.shape[-1]
     if d > _UNROLL_MAX_DIM:
         return jnp.linalg.cholesky(a)
-    cols: list[list[Array]] = [[None] * d for _ in range(d)]  # type: ignore[list-item]
+    # sqrt of a non-positive pivot is NaN (caught by the caller), as LAPACK's failure is.
+    cols, _ = _unrolled_elimination(a, jnp.nan)
     zero = jnp.zeros_like(a[..., 0, 0])
-    for j in range(d):
-        diag = a[..., j, j] - sum((cols[j][k] ** 2 for k in range(j)), zero)
-        # sqrt of a non-positive pivot is NaN (caught by the caller), as LAPACK's failure is.
-        ljj = jnp.sqrt(jnp.where(diag > 0, diag, jnp.nan))
-        cols[j][j] = ljj
-        for i in range(j + 1, d):
-            off = a[..., i, j] - sum((cols[i][k] * cols[j][k] for k in range(j)), zero)
-            cols[i][j] = off / ljj
     rows = [jnp.stack([cols[i][j] if j <= i else zero for j in range(d)], -1) for i in range(d)]
     return jnp.stack(rows, -2)
 
 
 def _is_positive_definite(a: Array) -> Array:
     """``()`` bool: the Cholesky factorisation of symmetric ``a`` succeeds (every pivot positive and
-    finite). For ``d <= 6`` only the pivots of the unrolled elimination are formed (no factor)."""
-    d = a.shape[-1]
-    if d > _UNROLL_MAX_DIM:
+    finite). For ``d <= 6`` only the pivots of the unrolled elimination are used (no factor)."""
+    if a.shape[-1] > _UNROLL_MAX_DIM:
         return jnp.all(jnp.isfinite(jnp.linalg.cholesky(a)))
-    cols: list[list[Array]] = [[None] * d for _ in range(d)]  # type: ignore[list-item]
-    zero = jnp.zeros_like(a[..., 0, 0])
-    ok = jnp.ones(a.shape[:-2], bool)
-    for j in range(d):
-        diag = a[..., j, j] - sum((cols[j][k] ** 2 for k in range(j)), zero)
-        ok = ok & (diag > 0) & jnp.isfinite(diag)
-        ljj = jnp.sqrt(jnp.where(diag > 0, diag, 1.0))
-        for i in range(j + 1, d):
-            cols[i][j] = (a[..., i, j] - sum((cols[i][k] * cols[j][k] for k in range(j)), zero)) / ljj
-    return ok  # a non-finite entry makes some pivot NaN or -inf
+    _, pivots = _unrolled_elimination(a, 1.0)
+    # a non-finite entry makes some pivot NaN or -inf
+    return functools.reduce(jnp.logical_and, [(p > 0) & jnp.isfinite(p) for p in pivots])
 
 
 def solve_lower(L: ArrayLike, b: ArrayLike) -> Array:
