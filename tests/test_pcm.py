@@ -1,6 +1,8 @@
 """EISE, confidence search, PCM (seed 000) and GMRCM (seed 003) reducers."""
 
+import importlib
 import sys
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -27,6 +29,8 @@ from gmjax.reduction.pcm import PCM, pcm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from reference import pcm_numpy as ref  # noqa: E402
+
+eise_module = importlib.import_module("gmjax.reduction.eise")  # the package exports a function `eise`
 
 K = 12  # one capacity throughout so compiled kernels are shared
 
@@ -285,6 +289,62 @@ def test_newton_no_worse_than_grid_on_static_cases(name):
     # the chosen result is consistent with a hard clustering at the chosen lambda
     labels = gauss_cluster(gm, res.lam).labels
     np.testing.assert_array_equal(labels, res.labels)
+
+
+def _newton_problem(gm, alpha=0.01):
+    """Newton's inputs as :func:`search_confidence` builds them, from the grid's best ``λ``."""
+    grid, labels, counts = _grid_for(gm)
+    parts = eise_module._relaxed_parts(gm, grid, labels, counts, "ci")
+    lam0 = grid[jnp.argmin(jax.vmap(lambda lab: hard_eise(gm, lab, alpha=alpha)[0])(labels))]
+    return (parts, jnp.asarray(0.2), jnp.asarray(alpha)), lam0
+
+
+def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
+    """Newton stops once every run is done (``while_loop``s) and returns exactly what the fixed
+    8-step ``scan`` returns, alone and under vmap; its derivatives (a custom JVP through that scan)
+    equal the scan's, in forward and reverse mode."""
+    fun = partial(eise_module._relaxed_at, method="ci", regularizer="exp", ise_scale=0.5)
+    problems = [_newton_problem(random_gm(s, n=10)[0]) for s in range(6)] + [
+        _newton_problem(case(name)) for name in CASES
+    ]
+    args = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p[0] for p in problems])
+    lam0 = jnp.stack([p[1] for p in problems])
+    bounds = (1.0, 3.0)
+
+    def early(args, lam0):
+        return eise_module._newton(fun, args, lam0, *bounds, 8, 1e-6, args[1])
+
+    def fixed(args, lam0):
+        return eise_module._newton_loop(fun, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
+
+    batched_early, batched_fixed = jax.jit(jax.vmap(early))(args, lam0), jax.jit(jax.vmap(fixed))(args, lam0)
+    for a, b in zip(batched_early, batched_fixed):
+        np.testing.assert_array_equal(a, b)
+    iterations = np.asarray(batched_early[3])
+    assert iterations.min() < iterations.max() <= 8  # runs stop at different steps
+    one = jax.tree_util.tree_map(lambda a: a[0], args)
+    for a, b in zip(jax.jit(early)(one, lam0[0]), batched_fixed):
+        np.testing.assert_array_equal(a, b[0])
+    # the primal is a while_loop; only the derivative runs the scan
+    assert "while" in str(jax.make_jaxpr(early)(one, lam0[0])) and "scan" not in str(
+        jax.make_jaxpr(early)(one, lam0[0])
+    )
+
+    def lam_of(f, temperature, alpha, parts, lam0):
+        return f((parts, temperature, alpha), lam0)[0]
+
+    def derivatives(f):  # d λ / d (τ, α) per problem, in reverse and in forward mode
+        reverse = jax.grad(partial(lam_of, f), argnums=(0, 1))
+        forward = lambda t, a, p, l: jax.jvp(lambda t_: lam_of(f, t_, a, p, l), (t,), (jnp.ones_like(t),))[1]  # noqa: E731
+        both = lambda t, a, p, l: (*reverse(t, a, p, l), forward(t, a, p, l))  # noqa: E731
+        return jax.jit(jax.vmap(both, in_axes=(None, None, 0, 0)))(
+            jnp.asarray(0.2), jnp.asarray(0.01), args[0], lam0
+        )
+
+    # the same derivative; the custom JVP's instantiated zero tangents only reorder rounding
+    for d_early, d_fixed in zip(derivatives(early), derivatives(fixed)):
+        assert np.all(np.isfinite(d_fixed))
+        np.testing.assert_allclose(d_early, d_fixed, rtol=1e-10, atol=1e-14 * float(np.max(np.abs(d_fixed))))
 
 
 def test_search_grid_matches_numpy_reference():

@@ -36,6 +36,9 @@ the cluster a grid point puts it in). Equal to the dense soft merge to rounding
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
 :func:`_newton`); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
 is kept whenever Newton failed or did not do at least as well (``used_fallback`` in the result).
+Newton's loops exit early (under ``vmap``: once every run of the batch is done); a custom JVP
+differentiates the equivalent fixed-length ``scan``, so values and derivatives are those of
+``newton_steps`` masked steps.
 """
 
 from __future__ import annotations
@@ -401,6 +404,20 @@ def _relaxed_value(
     return ise_scale * (j_hh - 2.0 * j_hr + j_rr) + penalty(n_soft, n_ref, alpha, regularizer)
 
 
+def _relaxed_at(lam, args, *, method: str, regularizer: str, ise_scale: float) -> Array:
+    """:func:`_relaxed_value` with its traced arguments ``args = (parts, temperature, alpha)``."""
+    parts, temperature, alpha = args
+    return _relaxed_value(
+        parts,
+        lam,
+        temperature=temperature,
+        alpha=alpha,
+        method=method,
+        regularizer=regularizer,
+        ise_scale=ise_scale,
+    )
+
+
 def relaxed_eise(
     lam: ArrayLike,
     gm: GaussianMixture,
@@ -423,15 +440,8 @@ def relaxed_eise(
     """
     _check_options(method, regularizer)
     parts = _relaxed_parts(gm, grid, grid_labels, grid_counts, method)
-    return _relaxed_value(
-        parts,
-        lam,
-        temperature=temperature,
-        alpha=alpha,
-        method=method,
-        regularizer=regularizer,
-        ise_scale=ise_scale,
-    )
+    args = (parts, temperature, alpha)
+    return _relaxed_at(lam, args, method=method, regularizer=regularizer, ise_scale=ise_scale)
 
 
 class SearchResult(NamedTuple):
@@ -470,57 +480,94 @@ class SearchResult(NamedTuple):
     used_fallback: Array
 
 
-def _newton(fun, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
-    """Damped Newton–Raphson on a scalar function over ``[lo, hi]``.
+def _newton_step(fun, args, lo, hi, tol, radius, n_backtrack: int, early_exit: bool, carry):
+    """One damped Newton step of :func:`_newton` on ``carry = (λ, f, done, converged, iterations)``;
+    a run already ``done`` keeps its carry."""
+    lam, f, done, ok, it = carry
+    active = ~done
+    value = lambda x: fun(x, args)  # noqa: E731
+
+    def slope(x):
+        return jax.jvp(value, (x,), (jnp.ones_like(x),))[1]
+
+    # first and second derivative in forward mode (λ is a scalar: forward over forward is cheapest)
+    g, h = jax.jvp(slope, (lam,), (jnp.ones_like(lam),))
+    finite = jnp.isfinite(g) & jnp.isfinite(h)
+    convex = finite & (h > 0)
+    raw = jnp.where(convex, g / jnp.where(convex, h, 1.0), jnp.sign(g) * radius)
+    raw = jnp.where(finite, jnp.clip(raw, -radius, radius), 0.0)
+
+    def try_scale(k, acc):
+        found, lam_b, f_b = acc
+        cand = jnp.clip(lam - raw * 0.5**k, lo, hi)
+        f_c = value(cand)
+        better = (~found) & jnp.isfinite(f_c) & (f_c <= f)
+        return (found | better, jnp.where(better, cand, lam_b), jnp.where(better, f_c, f_b))
+
+    init = (jnp.zeros((), bool), lam, f)
+    if early_exit:  # stop halving once a candidate decreases f (under vmap: once every run has one)
+        _, (found, lam_new, f_new) = jax.lax.while_loop(
+            lambda s: (s[0] <= n_backtrack) & ~s[1][0] & active,
+            lambda s: (s[0] + 1, try_scale(s[0], s[1])),
+            (jnp.zeros((), jnp.int32), init),
+        )
+    else:
+        found, lam_new, f_new = jax.lax.fori_loop(0, n_backtrack + 1, try_scale, init)
+    found = found & finite
+    small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f - f_new) <= tol * jnp.abs(f))
+    converged = found & small
+    failed = ~found
+    lam_next = jnp.where(active & found, lam_new, lam)
+    f_next = jnp.where(active & found, f_new, f)
+    done_next = done | (active & (converged | failed))
+    ok_next = jnp.where(active, converged, ok)
+    return lam_next, f_next, done_next, ok_next, it + active.astype(jnp.int32)
+
+
+def _newton_loop(fun, steps: int, n_backtrack: int, early_exit: bool, args, lam0, lo, hi, tol, radius):
+    """:func:`_newton`'s iteration: a ``while_loop`` that stops once every run is done
+    (``early_exit``), or a ``scan`` of ``steps`` steps (reverse-differentiable); equal values."""
+    step = partial(_newton_step, fun, args, lo, hi, tol, radius, n_backtrack, early_exit)
+    f0 = fun(lam0, args)
+    init = (lam0, f0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+    if early_exit:
+        lam, f, _, ok, it = jax.lax.while_loop(lambda c: ~c[2] & (c[4] < steps), step, init)
+    else:
+        (lam, f, _, ok, it), _ = jax.lax.scan(lambda c, _: (step(c), None), init, None, length=steps)
+    return lam, f, ok, it
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def _newton_early_exit(fun, steps: int, n_backtrack: int, args, lam0, lo, hi, tol, radius):
+    return _newton_loop(fun, steps, n_backtrack, True, args, lam0, lo, hi, tol, radius)
+
+
+@_newton_early_exit.defjvp
+def _newton_early_exit_jvp(fun, steps, n_backtrack, primals, tangents):
+    # differentiate the fixed-length scan: the same values, and reverse mode (a while_loop has none)
+    return jax.jvp(partial(_newton_loop, fun, steps, n_backtrack, False), primals, tangents)
+
+
+def _newton(fun, args, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
+    """Damped Newton–Raphson on the scalar function ``fun(λ, args)`` over ``[lo, hi]``.
 
     Each step is the Newton step ``g / h`` (or, where the curvature is not positive, a descent step
     of length ``radius``), clipped to the trust radius ``radius`` and halved up to ``n_backtrack``
     times until the function decreases. It stops when ``|Δλ| < tol`` or the relative change of the
     function is below ``tol`` (seed 000 Fig. 2: "the change of the adjacent EISE is less than a
     small value") — *converged* — or when no halving decreases the function or a derivative is not
-    finite — *failed*.
+    finite — *failed* — or after ``steps`` steps.
+
+    The loops exit early: the step loop once the run is done, the halving loop once a candidate
+    decreases ``fun`` (under ``vmap``: once every run in the batch has). ``while_loop`` has no
+    reverse mode, so a custom JVP differentiates the equivalent fixed-length ``scan`` instead: the
+    values are identical and the derivatives are those of the ``scan`` (``jax.grad`` works).
+    ``fun`` must take everything it differentiates through ``args`` (a pytree), not a closure.
 
     Returns:
         ``(λ, fun(λ), converged, iterations)``.
     """
-
-    def slope(lam):
-        return jax.jvp(fun, (lam,), (jnp.ones_like(lam),))[1]
-
-    def body(carry, _):
-        lam, f, done, ok, it = carry
-        # first and second derivative in forward mode (λ is a scalar: forward over forward is cheapest)
-        g, h = jax.jvp(slope, (lam,), (jnp.ones_like(lam),))
-        finite = jnp.isfinite(g) & jnp.isfinite(h)
-        convex = finite & (h > 0)
-        raw = jnp.where(convex, g / jnp.where(convex, h, 1.0), jnp.sign(g) * radius)
-        raw = jnp.where(finite, jnp.clip(raw, -radius, radius), 0.0)
-
-        def try_scale(k, acc):
-            found, lam_b, f_b = acc
-            cand = jnp.clip(lam - raw * 0.5**k, lo, hi)
-            f_c = fun(cand)
-            better = (~found) & jnp.isfinite(f_c) & (f_c <= f)
-            return (found | better, jnp.where(better, cand, lam_b), jnp.where(better, f_c, f_b))
-
-        found, lam_new, f_new = jax.lax.fori_loop(
-            0, n_backtrack + 1, try_scale, (jnp.zeros((), bool), lam, f)
-        )
-        found = found & finite
-        small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f - f_new) <= tol * jnp.abs(f))
-        active = ~done
-        converged = found & small
-        failed = ~found
-        lam_next = jnp.where(active & found, lam_new, lam)
-        f_next = jnp.where(active & found, f_new, f)
-        done_next = done | (active & (converged | failed))
-        ok_next = jnp.where(active, converged, ok)
-        return (lam_next, f_next, done_next, ok_next, it + active.astype(jnp.int32)), None
-
-    f0 = fun(lam0)
-    init = (lam0, f0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
-    (lam, f, _, ok, it), _ = jax.lax.scan(body, init, None, length=steps)
-    return lam, f, ok, it
+    return _newton_early_exit(fun, steps, n_backtrack, args, lam0, lo, hi, tol, radius)
 
 
 @partial(
@@ -644,20 +691,10 @@ def search_confidence(
 
     parts = _relaxed_parts(gm, grid, grid_labels, grid_counts, method, overlaps=overlaps, info=info)
 
-    def relaxed(lam):
-        return _relaxed_value(
-            parts,
-            lam,
-            temperature=temperature,
-            alpha=alpha,
-            method=method,
-            regularizer=regularizer,
-            ise_scale=ise_scale,
-        )
-
+    relaxed = partial(_relaxed_at, method=method, regularizer=regularizer, ise_scale=ise_scale)
     tau = jnp.asarray(temperature, dtype)
     lam_newton, relaxed_newton, newton_ok, iterations = _newton(
-        relaxed, lam_grid, lo, hi, newton_steps, jnp.asarray(tol, dtype), tau
+        relaxed, (parts, tau, alpha), lam_grid, lo, hi, newton_steps, jnp.asarray(tol, dtype), tau
     )
     eise_newton, labels_newton, merged_newton, n_newton = evaluate(lam_newton)
     slack = 8 * jnp.finfo(dtype).eps * jnp.abs(eise_grid)  # rounding of an identical clustering
