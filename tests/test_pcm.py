@@ -240,6 +240,38 @@ def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
     np.testing.assert_allclose(h_fast, h_dense, rtol=1e-9, atol=scale)
 
 
+@pytest.mark.parametrize("d", [1, 3])
+@pytest.mark.parametrize(("method", "regularizer"), [("ci", "exp"), ("moment", "log10")])
+def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
+    """Newton's derivatives of the relaxed EISE, derived by hand (``eise._relaxed_slopes``), equal
+    forward-over-forward ``jvp`` of its value, padding included; float32 to its precision."""
+    options = dict(method=method, regularizer=regularizer, ise_scale=0.5)
+    fun = partial(eise_module._relaxed_at, **options)
+    by_hand = partial(eise_module._relaxed_slopes, **options)
+    lams = jnp.array([0.7, 1.05, 1.5, 2.0, 2.33, 2.9])  # off, between and on grid points
+
+    def evaluate(dtype, seed):
+        gm, *_ = random_gm(seed, n=9, d=d, dtype=dtype)
+        grid, labels, counts = _grid_for(gm)
+        parts = eise_module._relaxed_parts(gm, grid.astype(dtype), labels, counts, method)
+        args = (parts, jnp.asarray(0.2, dtype), jnp.asarray(0.01, dtype))
+        at = lambda f: jax.jit(jax.vmap(lambda lam: f(lam, args)))(lams.astype(dtype))  # noqa: E731
+        return at(fun), at(partial(eise_module._jvp_slopes, fun)), at(by_hand)
+
+    steepest = 0.0
+    for seed in (3 + d, 11):
+        f, jvp, hand = evaluate(jnp.float64, seed)
+        scale = float(np.max(np.abs(f)))  # where all grid clusterings agree the slopes are rounding
+        steepest = max(steepest, float(np.max(np.abs(jvp[0]))) / scale)
+        for exact, ours in zip(jvp, hand):
+            np.testing.assert_allclose(ours, exact, rtol=1e-9, atol=1e-12 * scale)
+        _, _, hand32 = evaluate(jnp.float32, seed)  # (float32 jvp can be NaN where these are not)
+        for exact, ours in zip(jvp, hand32):
+            assert ours.dtype == jnp.float32
+            np.testing.assert_allclose(ours, exact, rtol=1e-3, atol=1e-4 * scale)
+    assert steepest > 1e-3  # not only flat relaxations
+
+
 def test_relaxed_eise_gradient_matches_finite_differences():
     gm = case("multimodal")
     grid, labels, counts = _grid_for(gm)
@@ -303,7 +335,9 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     """Newton stops once every run is done (``while_loop``s) and returns exactly what the fixed
     8-step ``scan`` returns, alone and under vmap; its derivatives (a custom JVP through that scan)
     equal the scan's, in forward and reverse mode."""
-    fun = partial(eise_module._relaxed_at, method="ci", regularizer="exp", ise_scale=0.5)
+    options = dict(method="ci", regularizer="exp", ise_scale=0.5)
+    fun = partial(eise_module._relaxed_at, **options)
+    slopes = partial(eise_module._relaxed_slopes, **options)  # as search_confidence takes them
     problems = [_newton_problem(random_gm(s, n=10)[0]) for s in range(6)] + [
         _newton_problem(case(name)) for name in CASES
     ]
@@ -312,10 +346,10 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     bounds = (1.0, 3.0)
 
     def early(args, lam0):
-        return eise_module._newton(fun, args, lam0, *bounds, 8, 1e-6, args[1])
+        return eise_module._newton(fun, args, lam0, *bounds, 8, 1e-6, args[1], slopes=slopes)
 
     def fixed(args, lam0):
-        return eise_module._newton_loop(fun, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
+        return eise_module._newton_loop(fun, slopes, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
 
     batched_early, batched_fixed = jax.jit(jax.vmap(early))(args, lam0), jax.jit(jax.vmap(fixed))(args, lam0)
     for a, b in zip(batched_early, batched_fixed):

@@ -43,6 +43,7 @@ differentiates the equivalent fixed-length ``scan``, so values and derivatives a
 
 from __future__ import annotations
 
+import functools
 from functools import partial
 from typing import NamedTuple, Sequence
 
@@ -418,6 +419,173 @@ def _relaxed_at(lam, args, *, method: str, regularizer: str, ise_scale: float) -
     )
 
 
+# Small-matrix products over leading batch axes, unrolled over d (<= 6) into elementwise operations:
+# XLA's CPU dot_general on batches of tiny matrices calls a kernel per matrix (as gaussian.py notes).
+def _mm(a: Array, b: Array) -> Array:
+    """``a @ b`` for ``(..., d, d)`` matrices."""
+    if a.shape[-1] > gaussian._UNROLL_MAX_DIM:
+        return a @ b
+    return functools.reduce(jnp.add, [a[..., :, k, None] * b[..., None, k, :] for k in range(a.shape[-1])])
+
+
+def _mv(a: Array, x: Array) -> Array:
+    """``a @ x`` for ``(..., d, d)`` matrices and ``(..., d)`` vectors."""
+    if a.shape[-1] > gaussian._UNROLL_MAX_DIM:
+        return jnp.einsum("...ij,...j->...i", a, x)
+    return functools.reduce(jnp.add, [a[..., :, k] * x[..., k, None] for k in range(a.shape[-1])])
+
+
+def _dot(x: Array, y: Array) -> Array:
+    """``xᵀ y`` over the last axis."""
+    return functools.reduce(jnp.add, [x[..., k] * y[..., k] for k in range(x.shape[-1])])
+
+
+def _trace_of_product(a: Array, b: Array) -> Array:
+    """``tr(a b)`` for ``(..., d, d)`` matrices."""
+    return functools.reduce(jnp.add, [_dot(a[..., i, :], b[..., :, i]) for i in range(a.shape[-1])])
+
+
+def _softmax_slopes(pi: Array, a: Array) -> tuple[Array, Array]:
+    """``π'`` and ``π''`` of ``π = softmax(l)`` ``(G,)`` with ``l' = a`` and ``l''`` the same for every
+    entry (the Gaussian kernel's ``-1/τ²``): ``π' = π (a - ā)``, ``π'' = π ((a - ā)² - Var_π a)``."""
+    centred = a - pi @ a
+    return pi * centred, pi * (centred**2 - pi @ centred**2)
+
+
+def _quotient_slopes(num: Array, den: Array) -> Array:
+    """``(3, ...)`` value, first and second derivative of ``num / den`` from those of ``num``
+    ``(3, C, ...)`` and of ``den`` ``(3, C)`` (``den[0] > 0``)."""
+    den = den.reshape(den.shape + (1,) * (num.ndim - den.ndim))
+    q0 = num[0] / den[0]
+    q1 = (num[1] - q0 * den[1]) / den[0]
+    q2 = (num[2] - 2.0 * q1 * den[1] - q0 * den[2]) / den[0]
+    return jnp.stack([q0, q1, q2])
+
+
+def _penalty_slopes(n: Array, n_ref: Array, alpha: ArrayLike, regularizer: str) -> tuple[Array, Array]:
+    """First and second derivative of :func:`penalty` along a path with soft counts ``n`` ``(3,)``
+    (value, first and second derivative)."""
+    if regularizer == "exp":
+        scale = 1.0 / jnp.where(n_ref > 0, n_ref, 1).astype(n.dtype)
+        p = alpha * jnp.exp(n[0] * scale)
+        return p * n[1] * scale, p * ((n[1] * scale) ** 2 + n[2] * scale)
+    positive = n[0] > 0  # penalty() holds lg N' constant (at lg 1) otherwise
+    safe = jnp.where(positive, n[0], 1.0)
+    r1, r2 = n[1] / safe, n[2] / safe
+    return (
+        jnp.where(positive, alpha * r1 / jnp.log(10.0), 0.0),
+        jnp.where(positive, alpha * (r2 - r1**2) / jnp.log(10.0), 0.0),
+    )
+
+
+def _relaxed_slopes(lam, args, *, method: str, regularizer: str, ise_scale: float) -> tuple[Array, Array]:
+    """First and second derivative in ``λ`` of :func:`_relaxed_at`, derived by hand.
+
+    Forward-over-forward ``jax.jvp`` of the relaxation carries every intermediate through two
+    tangent orders; the chain rule through ``π(λ)`` (:func:`_softmax_slopes`) needs only the
+    derivatives of the merged clusters ``(W_c, ū_c, P̄_c)`` and, per pair ``(m, c)`` of ``J_hr``
+    with ``S = P_m + P̄_c``, ``r = u_m - ū_c``, ``v = S^{-1} r`` and ``ℓ = log N(r; 0, S)``:
+
+    * ``ℓ' = -½ tr(S^{-1} S') + vᵀū' + ½ vᵀ S' v``,
+    * ``ℓ'' = -½ tr(S^{-1} S'') + ½ tr(S^{-1} S' S^{-1} S') - zᵀ S^{-1} z + vᵀ ū'' + ½ vᵀ S'' v``
+      with ``z = S' v + ū'``,
+
+    and the same with ``S = 2 P̄_c``, ``r = 0`` for ``J_rr``. Equal to the ``jvp`` derivatives to
+    rounding (``tests/test_pcm.py``); Newton's step uses these.
+    """
+    parts, temperature, alpha = args
+    gm = parts.gm
+    dtype = gm.means.dtype
+    eye = jnp.eye(gm.dim, dtype=dtype)
+    t = (lam - parts.grid) / temperature
+    pi = jax.nn.softmax(-0.5 * t**2)
+    pis = jnp.stack([pi, *_softmax_slopes(pi, -t / temperature)])  # (3, G): π, π', π''
+    W = pis @ parts.weights  # (3, C)
+    live = W[0] > 0
+    W = W.at[0].set(jnp.where(live, W[0], 1.0))
+    first = _quotient_slopes(jnp.einsum("ng,gci->nci", pis, parts.first), W)  # (3, C, d)
+    second = _quotient_slopes(jnp.einsum("ng,gcij->ncij", pis, parts.second), W)  # (3, C, d, d)
+    if method == "ci":  # P̄ = Q^{-1}: P̄' = -P̄ Q' P̄, P̄'' = -P̄ Q'' P̄ - 2 P̄' Q' P̄; ū = P̄ F
+        prec = jnp.where(live[:, None, None], second[0], eye)
+        cov = gaussian.spd_inv(prec)
+        cov1 = -_mm(cov, _mm(second[1], cov))
+        cov2 = -_mm(cov, _mm(second[2], cov)) - 2.0 * _mm(cov1, _mm(second[1], cov))
+        mu = jnp.stack(
+            [
+                _mv(cov, first[0]),
+                _mv(cov1, first[0]) + _mv(cov, first[1]),
+                _mv(cov2, first[0]) + 2.0 * _mv(cov1, first[1]) + _mv(cov, first[2]),
+            ]
+        )
+    else:  # ū = s + F, P̄ = Q - F Fᵀ
+        outer = lambda a, b: a[:, :, None] * b[:, None, :]  # noqa: E731
+        mu = first.at[0].add(parts.shift)
+        cov = gaussian.symmetrize(second[0] - outer(first[0], first[0]))
+        cov1 = second[1] - outer(first[1], first[0]) - outer(first[0], first[1])
+        cov2 = (
+            second[2]
+            - outer(first[2], first[0])
+            - 2.0 * outer(first[1], first[1])
+            - outer(first[0], first[2])
+        )
+        cov = jnp.where(live[:, None, None], cov, eye)
+        prec = gaussian.spd_inv(cov)
+    mu = jnp.where(live[None, :, None], mu, 0.0)
+    cov1 = jnp.where(live[:, None, None], cov1, 0.0)
+    cov2 = jnp.where(live[:, None, None], cov2, 0.0)
+    covs = jnp.stack([jnp.where(live[:, None, None], cov, eye), cov1, cov2])  # (3, C, d, d)
+    W = jnp.where(live, W, 0.0)
+
+    # J_rr = Σ_c W_c² N(0; 0, 2 P̄_c): ρ = log N, ρ' = -½ tr(P̄^{-1} P̄'), ρ'' as ℓ'' (S = 2 P̄, r = 0)
+    e_rr = jnp.exp(gaussian.spd_logpdf(mu[0], mu[0], 2.0 * covs[0]))
+    pc1 = _mm(prec, covs[1])
+    rho1 = -0.5 * _trace_of_product(prec, covs[1])
+    rho2 = -0.5 * _trace_of_product(prec, covs[2]) + 0.5 * _trace_of_product(pc1, pc1)
+    W0, W1, W2 = W
+    j_rr1 = jnp.sum(e_rr * (2.0 * W0 * W1 + W0**2 * rho1))
+    j_rr2 = jnp.sum(e_rr * (2.0 * W1**2 + 2.0 * W0 * W2 + 4.0 * W0 * W1 * rho1 + W0**2 * (rho1**2 + rho2)))
+
+    # J_hr = Σ_k π_k Σ_m w_m W_c N(u_m; ū_c, P_m + P̄_c), c = the cluster grid point k puts m in
+    own = jnp.maximum(parts.labels, 0)  # (G, K)
+    valid = (parts.labels >= 0) & gm.mask[None, :] & live[own]
+    S = gm.covs[None] + covs[0][own]  # (G, K, d, d)
+    S1, S2 = covs[1][own], covs[2][own]
+    m1, m2 = mu[1][own], mu[2][own]
+    Si = gaussian.spd_inv(S)
+    v = _mv(Si, gm.means[None] - mu[0][own])
+    Si_S1 = _mm(Si, S1)
+    S1_v = _mv(S1, v)
+    z = S1_v + m1
+    ell1 = -0.5 * _trace_of_product(Si, S1) + _dot(v, m1) + 0.5 * _dot(v, S1_v)
+    ell2 = (
+        -0.5 * _trace_of_product(Si, S2)
+        + 0.5 * _trace_of_product(Si_S1, Si_S1)
+        - _dot(z, _mv(Si, z))
+        + _dot(v, m2)
+        + 0.5 * _dot(v, _mv(S2, v))
+    )
+    log_cross = gaussian.spd_logpdf(gm.means[None], mu[0][own], S)
+    w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
+    e = jnp.exp(jnp.where(valid, log_cross, -jnp.inf)) * w[None, :]
+    Wo0, Wo1, Wo2 = W0[own], W1[own], W2[own]
+    h0 = jnp.sum(e * Wo0, axis=1)
+    h1 = jnp.sum(jnp.where(valid, e * (Wo1 + Wo0 * ell1), 0.0), axis=1)
+    h2 = jnp.sum(jnp.where(valid, e * (Wo2 + 2.0 * Wo1 * ell1 + Wo0 * (ell1**2 + ell2)), 0.0), axis=1)
+    pi0, pi1, pi2 = pis
+    j_hr1 = pi1 @ h0 + pi0 @ h1
+    j_hr2 = pi2 @ h0 + 2.0 * pi1 @ h1 + pi0 @ h2
+
+    # J_hh = πᵀ H π (H symmetric)
+    j_hh1 = 2.0 * pi1 @ parts.hh @ pi0
+    j_hh2 = 2.0 * pi2 @ parts.hh @ pi0 + 2.0 * pi1 @ parts.hh @ pi1
+
+    n_ref = jnp.sum(gm.mask.astype(jnp.int32))
+    p1, p2 = _penalty_slopes(pis @ parts.counts, n_ref, alpha, regularizer)
+    g = ise_scale * (j_hh1 - 2.0 * j_hr1 + j_rr1) + p1
+    h = ise_scale * (j_hh2 - 2.0 * j_hr2 + j_rr2) + p2
+    return g, h
+
+
 def relaxed_eise(
     lam: ArrayLike,
     gm: GaussianMixture,
@@ -480,18 +648,23 @@ class SearchResult(NamedTuple):
     used_fallback: Array
 
 
-def _newton_step(fun, args, lo, hi, tol, radius, n_backtrack: int, early_exit: bool, carry):
+def _jvp_slopes(fun, lam, args):
+    """First and second derivative of the scalar ``fun(λ, args)``, forward over forward (``λ`` is a
+    scalar: the cheapest automatic way)."""
+
+    def slope(x):
+        return jax.jvp(lambda y: fun(y, args), (x,), (jnp.ones_like(x),))[1]
+
+    return jax.jvp(slope, (lam,), (jnp.ones_like(lam),))
+
+
+def _newton_step(fun, slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit: bool, carry):
     """One damped Newton step of :func:`_newton` on ``carry = (λ, f, done, converged, iterations)``;
     a run already ``done`` keeps its carry."""
     lam, f, done, ok, it = carry
     active = ~done
     value = lambda x: fun(x, args)  # noqa: E731
-
-    def slope(x):
-        return jax.jvp(value, (x,), (jnp.ones_like(x),))[1]
-
-    # first and second derivative in forward mode (λ is a scalar: forward over forward is cheapest)
-    g, h = jax.jvp(slope, (lam,), (jnp.ones_like(lam),))
+    g, h = _jvp_slopes(fun, lam, args) if slopes is None else slopes(lam, args)
     finite = jnp.isfinite(g) & jnp.isfinite(h)
     convex = finite & (h > 0)
     raw = jnp.where(convex, g / jnp.where(convex, h, 1.0), jnp.sign(g) * radius)
@@ -524,10 +697,12 @@ def _newton_step(fun, args, lo, hi, tol, radius, n_backtrack: int, early_exit: b
     return lam_next, f_next, done_next, ok_next, it + active.astype(jnp.int32)
 
 
-def _newton_loop(fun, steps: int, n_backtrack: int, early_exit: bool, args, lam0, lo, hi, tol, radius):
+def _newton_loop(
+    fun, slopes, steps: int, n_backtrack: int, early_exit: bool, args, lam0, lo, hi, tol, radius
+):
     """:func:`_newton`'s iteration: a ``while_loop`` that stops once every run is done
     (``early_exit``), or a ``scan`` of ``steps`` steps (reverse-differentiable); equal values."""
-    step = partial(_newton_step, fun, args, lo, hi, tol, radius, n_backtrack, early_exit)
+    step = partial(_newton_step, fun, slopes, args, lo, hi, tol, radius, n_backtrack, early_exit)
     f0 = fun(lam0, args)
     init = (lam0, f0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
     if early_exit:
@@ -537,18 +712,18 @@ def _newton_loop(fun, steps: int, n_backtrack: int, early_exit: bool, args, lam0
     return lam, f, ok, it
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
-def _newton_early_exit(fun, steps: int, n_backtrack: int, args, lam0, lo, hi, tol, radius):
-    return _newton_loop(fun, steps, n_backtrack, True, args, lam0, lo, hi, tol, radius)
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
+def _newton_early_exit(fun, slopes, steps: int, n_backtrack: int, args, lam0, lo, hi, tol, radius):
+    return _newton_loop(fun, slopes, steps, n_backtrack, True, args, lam0, lo, hi, tol, radius)
 
 
 @_newton_early_exit.defjvp
-def _newton_early_exit_jvp(fun, steps, n_backtrack, primals, tangents):
+def _newton_early_exit_jvp(fun, slopes, steps, n_backtrack, primals, tangents):
     # differentiate the fixed-length scan: the same values, and reverse mode (a while_loop has none)
-    return jax.jvp(partial(_newton_loop, fun, steps, n_backtrack, False), primals, tangents)
+    return jax.jvp(partial(_newton_loop, fun, slopes, steps, n_backtrack, False), primals, tangents)
 
 
-def _newton(fun, args, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4):
+def _newton(fun, args, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int = 4, slopes=None):
     """Damped Newton–Raphson on the scalar function ``fun(λ, args)`` over ``[lo, hi]``.
 
     Each step is the Newton step ``g / h`` (or, where the curvature is not positive, a descent step
@@ -563,11 +738,12 @@ def _newton(fun, args, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int =
     reverse mode, so a custom JVP differentiates the equivalent fixed-length ``scan`` instead: the
     values are identical and the derivatives are those of the ``scan`` (``jax.grad`` works).
     ``fun`` must take everything it differentiates through ``args`` (a pytree), not a closure.
+    ``slopes(λ, args) -> (f', f'')`` gives the derivatives (default: forward-over-forward ``jvp``).
 
     Returns:
         ``(λ, fun(λ), converged, iterations)``.
     """
-    return _newton_early_exit(fun, steps, n_backtrack, args, lam0, lo, hi, tol, radius)
+    return _newton_early_exit(fun, slopes, steps, n_backtrack, args, lam0, lo, hi, tol, radius)
 
 
 @partial(
@@ -692,9 +868,18 @@ def search_confidence(
     parts = _relaxed_parts(gm, grid, grid_labels, grid_counts, method, overlaps=overlaps, info=info)
 
     relaxed = partial(_relaxed_at, method=method, regularizer=regularizer, ise_scale=ise_scale)
+    slopes = partial(_relaxed_slopes, method=method, regularizer=regularizer, ise_scale=ise_scale)
     tau = jnp.asarray(temperature, dtype)
     lam_newton, relaxed_newton, newton_ok, iterations = _newton(
-        relaxed, (parts, tau, alpha), lam_grid, lo, hi, newton_steps, jnp.asarray(tol, dtype), tau
+        relaxed,
+        (parts, tau, alpha),
+        lam_grid,
+        lo,
+        hi,
+        newton_steps,
+        jnp.asarray(tol, dtype),
+        tau,
+        slopes=slopes,
     )
     eise_newton, labels_newton, merged_newton, n_newton = evaluate(lam_newton)
     slack = 8 * jnp.finfo(dtype).eps * jnp.abs(eise_grid)  # rounding of an identical clustering
