@@ -24,7 +24,9 @@ nothing to work with. We therefore run Newton on a smooth relaxation with *soft 
   formula), and the closed-form EISE is evaluated on the soft clusters, with the soft count
   ``N'(λ) = Σ_k π_k N'_k`` in the penalty;
 * as ``τ → 0`` the relaxation tends to the hard EISE of the nearest grid point; for ``τ > 0`` it is
-  ``C^∞`` in ``λ`` and ``jax.grad`` / ``jax.hessian`` give the Newton step.
+  ``C^∞`` in ``λ``. The Newton step takes its first and second derivative from the chain rule
+  through ``π(λ)`` worked out by hand (``_relaxed_slopes``; equal to ``jax.jvp`` of the value to
+  rounding, and cheaper), and ``jax.grad`` differentiates through all of it.
 
 **Cost.** ``A(λ)`` enters the merge statistics linearly and ``J_hh`` bilinearly, so the search
 builds the per-grid-point sums once (``_RelaxedParts``: ``Σ ω``, ``Σ ω P^{-1}``, ``Σ ω P^{-1} u``
@@ -71,6 +73,7 @@ __all__ = [
 
 _METHODS = ("ci", "moment")
 _REGULARIZERS = ("exp", "log10")
+_FLAT_EPS = 64  # Newton takes no step whose predicted change |f'| τ is below 64 ε |f|
 
 
 def _check_options(method: str, regularizer: str) -> None:
@@ -668,7 +671,9 @@ def _newton_step(fun, slopes, args, lo, hi, tol, radius, n_backtrack: int, early
     finite = jnp.isfinite(g) & jnp.isfinite(h)
     convex = finite & (h > 0)
     raw = jnp.where(convex, g / jnp.where(convex, h, 1.0), jnp.sign(g) * radius)
-    raw = jnp.where(finite, jnp.clip(raw, -radius, radius), 0.0)
+    # flat to rounding (every grid point near λ clusters alike): g is noise, so stay (and converge)
+    flat = jnp.abs(g) * radius <= _FLAT_EPS * jnp.finfo(f.dtype).eps * jnp.abs(f)
+    raw = jnp.where(finite & ~flat, jnp.clip(raw, -radius, radius), 0.0)
 
     def try_scale(k, acc):
         found, lam_b, f_b = acc
@@ -728,7 +733,9 @@ def _newton(fun, args, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int =
 
     Each step is the Newton step ``g / h`` (or, where the curvature is not positive, a descent step
     of length ``radius``), clipped to the trust radius ``radius`` and halved up to ``n_backtrack``
-    times until the function decreases. It stops when ``|Δλ| < tol`` or the relative change of the
+    times until the function decreases. Where ``|g| radius <= 64 ε |f|`` the function is flat to
+    rounding (for the relaxed EISE: every grid point near ``λ`` clusters alike) and ``g`` is noise:
+    no step is taken and Newton has converged where it is. It stops when ``|Δλ| < tol`` or the relative change of the
     function is below ``tol`` (seed 000 Fig. 2: "the change of the adjacent EISE is less than a
     small value") — *converged* — or when no halving decreases the function or a derivative is not
     finite — *failed* — or after ``steps`` steps.
