@@ -381,6 +381,22 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
         np.testing.assert_allclose(d_early, d_fixed, rtol=1e-10, atol=1e-14 * float(np.max(np.abs(d_fixed))))
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_newton_stays_where_the_relaxation_is_flat(dtype):
+    """Components too far apart to merge anywhere on the grid: every grid point clusters alike, the
+    relaxed EISE is constant and its slope rounding noise, so Newton stays at the grid's best and
+    has converged (before, it moved λ by a noise-signed trust radius)."""
+    gm = GaussianMixture.create(
+        [0.5, 0.3, 0.2], [[0.0], [50.0], [100.0]], np.ones((3, 1, 1)), capacity=K, dtype=dtype
+    )
+    res = search_confidence(
+        gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6, alpha=0.01
+    )
+    assert np.all(np.asarray(res.grid_counts) == 3)  # nothing merges at any grid point
+    assert float(res.lam_newton) == float(res.lam_grid) == float(res.lam)
+    assert bool(res.newton_ok) and int(res.iterations) == 1
+
+
 def test_search_grid_matches_numpy_reference():
     w, m, P = case_np("multimodal")
     gm = case("multimodal")

@@ -677,12 +677,15 @@ def _newton_step(fun, slopes, args, lo, hi, tol, radius, n_backtrack: int, early
 
     def try_scale(k, acc):
         found, lam_b, f_b = acc
-        cand = jnp.clip(lam - raw * 0.5**k, lo, hi)
+        cand = jnp.clip(
+            lam - raw * jnp.asarray(0.5, raw.dtype) ** k, lo, hi
+        )  # (a weak 0.5 ** int32 is float64)
         f_c = value(cand)
         better = (~found) & jnp.isfinite(f_c) & (f_c <= f)
         return (found | better, jnp.where(better, cand, lam_b), jnp.where(better, f_c, f_b))
 
-    init = (jnp.zeros((), bool), lam, f)
+    # a zero step (flat) is taken at once: f re-evaluated at λ in another loop may differ in its last bit
+    init = (finite & (raw == 0), lam, f)
     if early_exit:  # stop halving once a candidate decreases f (under vmap: once every run has one)
         _, (found, lam_new, f_new) = jax.lax.while_loop(
             lambda s: (s[0] <= n_backtrack) & ~s[1][0] & active,
@@ -879,7 +882,7 @@ def search_confidence(
     tau = jnp.asarray(temperature, dtype)
     lam_newton, relaxed_newton, newton_ok, iterations = _newton(
         relaxed,
-        (parts, tau, alpha),
+        (parts, tau, jnp.asarray(alpha, dtype)),
         lam_grid,
         lo,
         hi,
