@@ -21,7 +21,11 @@ Newton)", and prints its ratio to the grid row (issue 17: at most 1.5×).
 
 Usage: python benchmarks/bench_gsf_kernel.py [--runs 1000] [--runs-runnalls 200] [--runs-pcm 200]
        [--repeats 5] [--quick] [--systems 1-D 4-D] [--filters prune runnalls pcm] [--timeout 900]
-       [--note "..."]
+       [--note "..."] [--merge-with results/gsf_kernel.json] [--render]
+
+``--merge-with`` reruns some cases and keeps the other rows of an earlier results file (each row
+records its runs and repeats; the earlier note is kept); ``--render`` only rewrites the Markdown
+table from ``results/gsf_kernel.json``.
 
 Each case (system, filter, dtype) runs in a fresh process, retried once if it gives no result within
 ``--timeout`` seconds (a long process hung in the XLA CPU runtime; see ``_common.run_in_fresh_process``).
@@ -134,6 +138,7 @@ def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: 
                 "dtype": jnp.dtype(dtype).name,
                 "track_ise": track_ise,
                 "n_runs": n_runs,
+                "repeats": repeats,
                 "n_steps": n_steps,
                 "gmjax_compile_s": t_gm["compile_s"],
                 "minimal_compile_s": ref["compile_s"],
@@ -175,6 +180,9 @@ def main(argv: list[str] | None = None) -> dict:
         default=None,
         help="a previous results JSON: its rows of the cases not run now are kept (to rerun some cases)",
     )
+    parser.add_argument(
+        "--render", action="store_true", help="only rewrite results/gsf_kernel.md from its JSON"
+    )
     parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
@@ -184,7 +192,15 @@ def main(argv: list[str] | None = None) -> dict:
         system, reducer, dtype_name, runs, repeats = json.loads(args.one)
         print(json.dumps(case(system, reducer, jnp.dtype(dtype_name).type, runs, repeats)))
         return {}
-    from _common import markdown_table, run_in_fresh_process, write_results
+    from _common import RESULTS_DIR, run_in_fresh_process, write_results
+
+    if args.render:
+        import json
+
+        path = RESULTS_DIR / "gsf_kernel.md"
+        path.write_text(render_markdown(json.loads((RESULTS_DIR / "gsf_kernel.json").read_text())))
+        print(f"wrote {path}")
+        return {}
 
     n_runs, repeats = (100, 2) if args.quick else (args.runs, args.repeats)
     dtypes = [jnp.float64] if args.quick else [jnp.dtype(name).type for name in args.dtypes]
@@ -221,23 +237,55 @@ def main(argv: list[str] | None = None) -> dict:
                     )
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
+    previous_note = ""
     if args.merge_with:
         import json
 
         with open(args.merge_with) as f:
-            previous = json.load(f)
-        rerun = {(r["system"], r["filter"], r["dtype"]) for r in rows}
-        kept = [r for r in previous["rows"] if (r["system"], r["filter"], r["dtype"]) not in rerun]
-        rows = kept + rows
-        args.note += f" Rows of {len({(r['system'], r['filter'], r['dtype']) for r in kept})} cases from an earlier run"
-        args.note += (
-            f" (load {' '.join(previous['loadavg_before'])} / {' '.join(previous['loadavg_after'])})."
-        )
+            rows, merge_note, previous_note = merge_results(rows, json.load(f))
+        args.note = f"{args.note} {merge_note}".strip()
+    data = {
+        "rows": rows,
+        "failed": failed,
+        "note": args.note,
+        "previous_note": previous_note,
+        "loadavg_before": load_before,
+        "loadavg_after": load_after,
+    }
+    md = render_markdown(data)
+    path = write_results("gsf_kernel", data, md, quick=args.quick)
+    print(md)
+    print(f"wrote {path}")
+    return data
+
+
+def merge_results(rows: list[dict], previous: dict) -> tuple[list[dict], str, str]:
+    """Rows of ``previous`` (a results dict) for the cases not in ``rows``, then ``rows``.
+
+    Returns ``(rows, note, previous_note)``: ``note`` says how many cases were kept and the load
+    of their run; ``previous_note`` carries the earlier run's notes (its own earlier ones included).
+    """
+    rerun = {(r["system"], r["filter"], r["dtype"]) for r in rows}
+    kept = [r for r in previous["rows"] if (r["system"], r["filter"], r["dtype"]) not in rerun]
+    n_kept = len({(r["system"], r["filter"], r["dtype"]) for r in kept})
+    note = (
+        f"Rows of {n_kept} cases kept from an earlier run (load {' '.join(previous['loadavg_before'])}"
+        f" / {' '.join(previous['loadavg_after'])})."
+    )
+    previous_note = " ".join(t for t in (previous.get("note"), previous.get("previous_note")) if t)
+    return kept + rows, note, previous_note
+
+
+def render_markdown(data: dict) -> str:
+    """The results table and its notes from a results dict (``rows``, ``failed``, ``note``, ...)."""
+    from _common import markdown_table
+
     header = [
         "system",
         "filter",
         "dtype",
         "ISE diag.",
+        "runs",
         "gmjax µs/run-step",
         "minimal µs/run-step",
         "gmjax / minimal",
@@ -252,6 +300,7 @@ def main(argv: list[str] | None = None) -> dict:
             r["filter"],
             r["dtype"],
             "on" if r["track_ise"] else "off",
+            r["n_runs"],
             r["gmjax_us_per_run_step"],
             r["minimal_us_per_run_step"],
             r["ratio"],
@@ -260,13 +309,12 @@ def main(argv: list[str] | None = None) -> dict:
             r["minimal_compile_s"],
             "n/a" if np.isnan(r["max_abs_diff"]) else f"{r['max_abs_diff']:.1e}",
         ]
-        for r in rows
+        for r in data["rows"]
     ]
     md = (
         "# gmjax's GSF against a minimal hand-written JAX kernel\n\n"
-        f"{n_runs} runs (R-GSF: {min(n_runs, args.runs_runnalls)}, PCM-GSF: {min(n_runs, args.runs_pcm)}),"
-        f" `jit(vmap(...))` over runs, best of"
-        f" {repeats} after compilation; the minimal kernel"
+        "`jit(vmap(...))` over the table's runs, the best of several repeats after compilation"
+        f" ({_repeats(data['rows'])}); the minimal kernel"
         " (`benchmarks/reference/gsf_minimal.py`) is timed before and after each gmjax row and the faster"
         " of the two is used. 1-D: seed 000 jump system (120 steps, 3 × 1 noise components); 4-D: seed 000"
         " Table 8 range-bearing system (100 steps, 1 × 4). Capacity 20. PCM-GSF (grid): the seed 000"
@@ -274,23 +322,27 @@ def main(argv: list[str] | None = None) -> dict:
         " steps; PCM-GSF (grid + Newton): the same with its default 8 Newton steps on the relaxed EISE"
         " (float64; timed in the grid row's process, 'Newton / grid' is their ratio; its estimates differ"
         " from the grid's, so no |Δ estimate|). Load average before / after: "
-        f"{' '.join(load_before)} / {' '.join(load_after)}.\n\n" + markdown_table(header, table) + "\n"
+        f"{' '.join(data['loadavg_before'])} / {' '.join(data['loadavg_after'])}.\n\n"
+        + markdown_table(header, table)
+        + "\n"
     )
-    if failed:
-        md += "\nCases that could not run: " + "; ".join(failed) + "\n"
-    if args.note:
-        md += f"\nNote: {args.note}\n"
-    data = {
-        "rows": rows,
-        "failed": failed,
-        "note": args.note,
-        "loadavg_before": load_before,
-        "loadavg_after": load_after,
-    }
-    path = write_results("gsf_kernel", data, md, quick=args.quick)
-    print(md)
-    print(f"wrote {path}")
-    return data
+    if data["failed"]:
+        md += "\nCases that could not run: " + "; ".join(data["failed"]) + "\n"
+    if data["note"]:
+        md += f"\nNote: {data['note']}\n"
+    if data.get("previous_note"):
+        md += f"\nThe earlier run's note: {data['previous_note']}\n"
+    return md
+
+
+def _repeats(rows: list[dict]) -> str:
+    """The rows' repeat counts, e.g. ``"3 repeats"`` or ``"3 or 5 repeats"`` (older rows: unknown)."""
+    counts = sorted({r["repeats"] for r in rows if "repeats" in r})
+    unknown = any("repeats" not in r for r in rows)
+    if not counts:
+        return "repeats not recorded"
+    text = " or ".join(str(c) for c in counts) + " repeats"
+    return text + (", some rows' not recorded" if unknown else "")
 
 
 if __name__ == "__main__":

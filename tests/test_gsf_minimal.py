@@ -102,3 +102,45 @@ def test_minimal_pcm_gsf_equals_gmjax_4d():
     mean_min, cov_min, mean_gm, cov_gm = _filter_runs(range_bearing(duration=0.3), (0, 2), 4)
     assert np.abs(mean_min - mean_gm).max() < 1e-9
     assert np.abs(cov_min - cov_gm).max() < 1e-9 * max(1.0, np.abs(cov_gm).max())
+
+
+def _row(system, filt, dtype, n_runs, repeats=None):
+    row = {
+        "system": system,
+        "filter": filt,
+        "dtype": dtype,
+        "track_ise": False,
+        "n_runs": n_runs,
+        "gmjax_us_per_run_step": 2.0,
+        "minimal_us_per_run_step": 1.0,
+        "ratio": 2.0,
+        "gmjax_compile_s": 1.0,
+        "minimal_compile_s": 0.5,
+        "max_abs_diff": 1e-12,
+    }
+    return row if repeats is None else {**row, "repeats": repeats}
+
+
+def test_bench_merge_keeps_other_cases_their_runs_and_notes():
+    """``--merge-with``: the rerun case replaces its rows, the kept rows keep their own run counts,
+    and the table says each row's runs; the earlier notes survive a second merge."""
+    from bench_gsf_kernel import merge_results, render_markdown
+
+    first = {
+        "rows": [_row("1-D", "NL-GSF", "float64", 1000), _row("1-D", "R-GSF", "float64", 200)],
+        "note": "first run's note.",
+        "loadavg_before": ["0.1", "0.2", "0.3"],
+        "loadavg_after": ["1.1", "1.2", "1.3"],
+    }
+    rows, note, previous_note = merge_results([_row("1-D", "R-GSF", "float64", 50, repeats=3)], first)
+    assert [(r["filter"], r["n_runs"]) for r in rows] == [("NL-GSF", 1000), ("R-GSF", 50)]
+    assert note == "Rows of 1 cases kept from an earlier run (load 0.1 0.2 0.3 / 1.1 1.2 1.3)."
+    assert previous_note == "first run's note."
+    second = {**first, "rows": rows, "note": note, "previous_note": previous_note, "failed": []}
+    md = render_markdown(second)
+    assert "| 1-D | NL-GSF | float64 | off | 1000 |" in md
+    assert "| 1-D | R-GSF | float64 | off | 50 |" in md
+    assert "3 repeats, some rows' not recorded" in md
+    assert "The earlier run's note: first run's note." in md
+    _, _, carried = merge_results([], second)
+    assert carried == f"{note} first run's note."
