@@ -89,6 +89,14 @@ def onehot_membership(labels: Array, num_clusters: int, dtype: DTypeLike | None 
     return (labels[:, None] == jnp.arange(num_clusters)[None, :]).astype(dtype)
 
 
+def _cluster_sums(values: Array, labels: Array, num_clusters: int) -> Array:
+    """``(C, ...)`` sums of ``values`` ``(K, ...)`` over each hard cluster (``labels == c``; slots
+    labelled ``-1`` are left out): the one-hot product ``Aᵀ values`` without the ``(K, C)`` matrix,
+    ``O(K)`` additions instead of ``O(K C)`` multiply-adds."""
+    ids = jnp.where(labels >= 0, labels, num_clusters)
+    return jax.ops.segment_sum(values, ids, num_segments=num_clusters + 1)[:num_clusters]
+
+
 def merge_membership(
     gm: GaussianMixture, membership: Array, method: str = "ci", *, info: Array | None = None
 ) -> GaussianMixture:
@@ -195,7 +203,13 @@ def cluster_ise(
         cross = jnp.einsum("mc,m->c", Aw, jnp.exp(jnp.where(live, log_own, -jnp.inf)))
     self_norm = jnp.exp(gaussian.spd_logpdf(merged.means, merged.means, 2.0 * merged.covs))
     Wc = jnp.where(merged.mask, merged.weights, 0.0)
-    j_hh = jnp.einsum("mc,mn,nc->c", Aw, S, Aw)
+    if labels is None:
+        j_hh = jnp.einsum("mc,mn,nc->c", Aw, S, Aw)
+    else:  # Σ_{m, n ∈ c} w_m w_n S_mn: O(K²) instead of the one-hot O(K² C)
+        lab = jnp.where(gm.mask, labels, -1)
+        same = (lab[:, None] == lab[None, :]) & (lab[:, None] >= 0)
+        row = jnp.sum(jnp.where(same, S * w[None, :], 0.0), axis=1)
+        j_hh = _cluster_sums(w * row, lab, Aw.shape[1])
     j_hr = cross * Wc
     j_rr = Wc * Wc * self_norm
     return jnp.where(merged.mask, j_hh - 2.0 * j_hr + j_rr, 0.0)
@@ -341,27 +355,40 @@ def _relaxed_parts(
     info: Array | None = None,
 ) -> _RelaxedParts:
     """The per-grid-point sums of ``gm``'s hard clusterings ``grid_labels`` ``(G, K)`` at ``grid``
-    ``(G,)`` with ``N'`` ``grid_counts`` ``(G,)``; ``overlaps`` and ``info`` as in :func:`hard_eise`."""
+    ``(G,)`` with ``N'`` ``grid_counts`` ``(G,)``; ``overlaps`` and ``info`` as in :func:`hard_eise`.
+
+    The merge statistics are sums over the members of each cluster (:func:`_cluster_sums`), and
+    ``hh[g, h] = Σ_m w_m T_h[m, l_g(m)]`` with ``T_h[m, c] = Σ_{n ∈ c} S_mn w_n`` (``l_g(m)`` the
+    cluster grid point ``g`` puts ``m`` in): one one-hot product for ``T`` and a gather, instead of
+    a second ``O(G² K C)`` contraction. Equal to the one-hot sums to rounding.
+    """
     dtype = gm.means.dtype
     K = gm.capacity
     w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
-    A = jax.vmap(lambda lab: onehot_membership(lab, K, dtype))(grid_labels)  # (G, K, C)
-    Aw = jnp.where(gm.mask[None, :, None], A, 0.0) * w[None, :, None]
+    labels = jnp.where(gm.mask[None, :], grid_labels, -1)  # (G, K)
+    sums = jax.vmap(partial(_cluster_sums, num_clusters=K), in_axes=(None, 0))
     S = self_overlaps(gm) if overlaps is None else overlaps
-    hh = jnp.einsum("gmc,mn,hnc->gh", Aw, S, Aw)
+    # T[h, m, c] = Σ_{n: l_h(n) = c} S_mn w_n, then hh[g, h] = Σ_m w_m T[h, m, l_g(m)]
+    onehot = jax.vmap(lambda lab: onehot_membership(lab, K, dtype))(labels)  # (G, K, C)
+    T = jnp.einsum("mn,hnc->hmc", S * w[None, :], onehot)
+    own = jnp.maximum(labels, 0)
+    T_own = jnp.take_along_axis(T[None], own[:, None, :, None], axis=3)[..., 0]  # (G, G, K)
+    hh = jnp.einsum("ghm,m->gh", jnp.where(labels[:, None, :] >= 0, T_own, 0.0), w)
     if method == "ci":
         info = gaussian.spd_inv(gm.covs) if info is None else info
-        info = jnp.where(gm.mask[:, None, None], info, 0.0)
+        w_info = jnp.where(gm.mask[:, None, None], info, 0.0) * w[:, None, None]
         shift = jnp.zeros_like(gm.means)
-        first = jnp.einsum("gmc,mij,mj->gci", Aw, info, gm.means)
-        second = jnp.einsum("gmc,mij->gcij", Aw, info)
+        first = sums(jnp.einsum("mij,mj->mi", w_info, gm.means), labels)
+        second = sums(w_info, labels)
     else:
         shift = jnp.where(gm.mask[:, None], gm.means, 0.0)  # cluster c's head is slot c
-        dev = gm.means[None, :, :] - shift[:, None, :]  # (C, K, d): u_m - s_c
-        first = jnp.einsum("gmc,cmi->gci", Aw, dev)
-        second = jnp.einsum("gmc,mij->gcij", Aw, gm.covs) + jnp.einsum("gmc,cmi,cmj->gcij", Aw, dev, dev)
+        dev = gm.means[None, :, :] - shift[own]  # (G, K, d): u_m - s_c, c = the cluster of m
+        wdev = w[None, :, None] * dev
+        first = jax.vmap(partial(_cluster_sums, num_clusters=K))(wdev, labels)
+        spread = w[None, :, None, None] * gm.covs[None] + wdev[:, :, :, None] * dev[:, :, None, :]
+        second = jax.vmap(partial(_cluster_sums, num_clusters=K))(spread, labels)
     return _RelaxedParts(
-        gm, grid, grid_labels, grid_counts.astype(dtype), jnp.sum(Aw, axis=1), first, second, shift, hh
+        gm, grid, grid_labels, grid_counts.astype(dtype), sums(w, labels), first, second, shift, hh
     )
 
 
