@@ -208,7 +208,7 @@ def cluster_ise(
     else:  # Σ_{m, n ∈ c} w_m w_n S_mn: O(K²) instead of the one-hot O(K² C)
         lab = jnp.where(gm.mask, labels, -1)
         same = (lab[:, None] == lab[None, :]) & (lab[:, None] >= 0)
-        row = jnp.sum(jnp.where(same, S * w[None, :], 0.0), axis=1)
+        row = jnp.where(same, S, 0.0) @ w  # a dot: the same rounding wherever it is compiled
         j_hh = _cluster_sums(w * row, lab, Aw.shape[1])
     j_hr = cross * Wc
     j_rr = Wc * Wc * self_norm
