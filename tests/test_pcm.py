@@ -401,6 +401,46 @@ def test_newton_stays_where_the_relaxation_is_flat(dtype):
     assert bool(res.newton_ok) and int(res.iterations) == 1
 
 
+def test_clustering_unless_known_skips_the_known_runs_alone_and_under_vmap():
+    """Newton's clustering is computed only for the runs whose judgment matrix matches no grid
+    point's: alone through a ``cond``, under vmap by gathering the runs that need it into blocks
+    (here 3 blocks of 16, the last one part known runs and part padding). Known runs get the labels
+    given, even wrong ones; the others get exactly the clustering's labels."""
+    gms = [random_gm(s, n=8 + s % 4)[0] for s in range(40)]
+    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
+    lam = jnp.linspace(1.0, 3.0, 40)
+    known = jnp.asarray(np.random.default_rng(0).uniform(size=40) < 0.15)
+    wrong = jnp.full((40, K), 7, jnp.int32)  # not a clustering: shows which runs were skipped
+
+    def cluster(gm, lam):
+        return gauss_cluster(gm, lam).labels
+
+    def labels(known, known_labels, gm, lam):
+        return eise_module._cluster_unless_known(cluster, known, known_labels, gm, lam)
+
+    fresh = jax.vmap(cluster)(batch, lam)
+    expected = np.where(np.asarray(known)[:, None], 7, np.asarray(fresh))
+    np.testing.assert_array_equal(jax.jit(jax.vmap(labels))(known, wrong, batch, lam), expected)
+    for i in (0, 1, 2, 3):  # alone
+        one = jax.tree_util.tree_map(lambda a: a[i], batch)
+        np.testing.assert_array_equal(jax.jit(labels)(known[i], wrong[i], one, lam[i]), expected[i])
+    assert 2 * eise_module._CLUSTER_BLOCK < int(jnp.sum(~known)) < 40  # three blocks, some known
+
+
+def test_search_newton_clustering_is_the_clustering_at_its_lambda():
+    """Where the search keeps Newton's λ, its labels (reused from a grid point with the same
+    judgment matrix, or clustered afresh) are those of clustering at that λ, under vmap."""
+    gms = [random_gm(s, n=10)[0] for s in range(24)] + [case(name) for name in CASES]
+    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
+    search = partial(
+        search_confidence, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6
+    )
+    res = jax.jit(jax.vmap(lambda g: search(g, alpha=0.01)))(batch)
+    fresh = jax.vmap(lambda g, lam: gauss_cluster(g, lam).labels)(batch, res.lam)
+    np.testing.assert_array_equal(res.labels, fresh)
+    assert int(jnp.sum(~res.used_fallback)) > 0 and bool(jnp.any(res.lam != res.lam_grid))
+
+
 def test_search_grid_matches_numpy_reference():
     w, m, P = case_np("multimodal")
     gm = case("multimodal")

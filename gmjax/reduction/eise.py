@@ -38,6 +38,9 @@ the cluster a grid point puts it in). Equal to the dense soft merge to rounding
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
 :func:`_newton`); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
 is kept whenever Newton failed or did not do at least as well (``used_fallback`` in the result).
+The clustering at Newton's ``λ`` is a grid point's wherever the two judgment matrices are equal
+(the clustering depends on ``λ`` only through it); only the other runs run the overlap sweep
+(:func:`_cluster_unless_known`; under ``vmap`` gathered into blocks).
 Newton's loops exit early (under ``vmap``: once every run of the batch is done); a custom JVP
 differentiates the equivalent fixed-length ``scan``, so values and derivatives are those of
 ``newton_steps`` masked steps.
@@ -55,7 +58,12 @@ import jax.numpy as jnp
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike, DTypeLike
 from gmjax.mixture import GaussianMixture
-from gmjax.reduction.clustering import centre_distances, gauss_cluster, similarity_thresholds
+from gmjax.reduction.clustering import (
+    centre_distances,
+    gauss_cluster,
+    judgment_matrix,
+    similarity_thresholds,
+)
 
 __all__ = [
     "SearchResult",
@@ -783,6 +791,52 @@ def _newton(fun, args, lam0, lo, hi, steps: int, tol, radius, n_backtrack: int =
     return _newton_early_exit(fun, slopes, steps, n_backtrack, args, lam0, lo, hi, tol, radius)
 
 
+_CLUSTER_BLOCK = 16  # runs per block when a batch clusters only the runs that need it
+
+
+def _cluster_unless_known(cluster, known: Array, known_labels: Array, *operands) -> Array:
+    """``cluster(*operands)``'s labels ``(K,)``, or ``known_labels`` where ``known`` says they are
+    equal already (:func:`search_confidence`: Newton's ``λ`` has the judgment matrix of a grid point).
+
+    Alone, a ``cond`` skips the overlap sweep. Under ``vmap`` a ``cond`` runs both sides and the
+    sweep runs as long as its slowest run, so the batch rule gathers the runs that need a clustering
+    and sweeps them in blocks of :data:`_CLUSTER_BLOCK` (usually one block, or none). The labels
+    are integers of a piecewise-constant map: no derivative flows through them.
+    """
+    operands = jax.lax.stop_gradient(operands)
+
+    def alone(known, known_labels, *operands):
+        return jax.lax.cond(known, lambda: known_labels, lambda: cluster(*operands))
+
+    batched = jax.custom_batching.custom_vmap(alone)
+
+    @batched.def_vmap
+    def _only_those_needed(axis_size, in_batched, known, known_labels, *operands):
+        spread = lambda a, b: a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a))  # noqa: E731
+        known, labels, *operands = jax.tree_util.tree_map(
+            spread, [known, known_labels, *operands], list(in_batched)
+        )
+        block = min(_CLUSTER_BLOCK, axis_size)
+        n_blocks = -(-axis_size // block)
+        need = ~known
+        order = jnp.argsort(known, stable=True)  # the runs that need a clustering first
+        order = jnp.pad(order, (0, n_blocks * block - axis_size), constant_values=axis_size)
+
+        def one_block(state):
+            j, labels = state
+            rows = jax.lax.dynamic_slice(order, (j * block,), (block,))
+            take = lambda a: jnp.take(a, rows, axis=0, mode="clip")  # noqa: E731
+            new = jax.vmap(cluster)(*jax.tree_util.tree_map(take, operands))
+            new = jnp.where(take(need)[:, None], new, take(labels))
+            return j + 1, labels.at[rows].set(new, mode="drop")
+
+        n_need = jnp.sum(need.astype(jnp.int32))
+        _, labels = jax.lax.while_loop(lambda s: s[0] * block < n_need, one_block, (0, labels))
+        return labels, True
+
+    return batched(known, known_labels, *operands)
+
+
 @partial(
     jax.jit,
     static_argnames=(
@@ -845,7 +899,7 @@ def search_confidence(
     overlaps = self_overlaps(gm)
     info = gaussian.spd_inv(gm.covs) if method == "ci" else None
 
-    def cluster(lam):
+    def cluster(gm, lam, delta, dist, range_scale):
         return gauss_cluster(
             gm,
             lam,
@@ -854,7 +908,7 @@ def search_confidence(
             range_scale=range_scale,
             delta=delta,
             dist=dist,
-        ).labels
+        )
 
     def evaluate_labels(labels):
         value, merged, n = hard_eise(
@@ -869,11 +923,9 @@ def search_confidence(
         )
         return value, labels, merged, n
 
-    def evaluate(lam):
-        return evaluate_labels(cluster(lam))
-
     # all grid clusterings in one overlap sweep, then the grid's merges and EISEs side by side
-    grid_eise, grid_labels, grid_merged, grid_counts = jax.vmap(evaluate_labels)(cluster(grid))
+    grid_clusters = cluster(gm, grid, delta, dist, range_scale)
+    grid_eise, grid_labels, grid_merged, grid_counts = jax.vmap(evaluate_labels)(grid_clusters.labels)
     best = jnp.argmin(grid_eise)
     lam_grid = grid[best]
     eise_grid = grid_eise[best]
@@ -918,7 +970,18 @@ def search_confidence(
         tau,
         slopes=slopes,
     )
-    eise_newton, labels_newton, merged_newton, n_newton = evaluate(lam_newton)
+    # the clustering depends on λ only through the judgment matrix, and a judgment matrix grows
+    # with λ (r_ij = [δ_ij <= s λ]): as many entries as a grid point's means the same matrix
+    entries = lambda r: jnp.sum(r.astype(jnp.int32), axis=(-2, -1))  # noqa: E731
+    newton_judgment = judgment_matrix(
+        delta, jnp.asarray(range_scale, dtype) * lam_newton, gm.mask, triangular=triangular
+    )
+    same = entries(grid_clusters.judgment) == entries(newton_judgment)  # (G,)
+    labels_known = grid_labels[jnp.argmax(same)]
+    newton_labels = _cluster_unless_known(
+        lambda *a: cluster(*a).labels, jnp.any(same), labels_known, gm, lam_newton, delta, dist, range_scale
+    )
+    eise_newton, labels_newton, merged_newton, n_newton = evaluate_labels(newton_labels)
     slack = 8 * jnp.finfo(dtype).eps * jnp.abs(eise_grid)  # rounding of an identical clustering
     use_newton = newton_ok & (eise_newton <= eise_grid + slack)
     pick = lambda a, b: jnp.where(use_newton, a, b)  # noqa: E731
