@@ -392,9 +392,10 @@ def _relaxed_parts(
         shift = jnp.where(gm.mask[:, None], gm.means, 0.0)  # cluster c's head is slot c
         dev = gm.means[None, :, :] - shift[own]  # (G, K, d): u_m - s_c, c = the cluster of m
         wdev = w[None, :, None] * dev
-        first = jax.vmap(partial(_cluster_sums, num_clusters=K))(wdev, labels)
+        per_grid_point = jax.vmap(partial(_cluster_sums, num_clusters=K))
+        first = per_grid_point(wdev, labels)
         spread = w[None, :, None, None] * gm.covs[None] + wdev[:, :, :, None] * dev[:, :, None, :]
-        second = jax.vmap(partial(_cluster_sums, num_clusters=K))(spread, labels)
+        second = per_grid_point(spread, labels)
     return _RelaxedParts(
         gm, grid, grid_labels, grid_counts.astype(dtype), sums(w, labels), first, second, shift, hh
     )
