@@ -385,6 +385,116 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
         np.testing.assert_allclose(d_early, d_fixed, rtol=1e-10, atol=1e-14 * float(np.max(np.abs(d_fixed))))
 
 
+def test_distinct_pairs_match_a_loop_alone_and_under_vmap():
+    """``J_hr``'s distinct (component, cluster) pairs, listed by component then first grid point,
+    with every live ``(g, m)`` pointing at its own; under vmap the chunk count is the batch's most."""
+    rng = np.random.default_rng(0)
+    G = 11
+    few = np.tile(rng.integers(0, 3, K), (G, 1))  # every grid point alike: one pair per component
+    few[6:, :4] = 5
+    many = (np.arange(G)[:, None] + rng.integers(0, K, K)) % K  # every pair distinct
+    many[:, -2:] = -1  # padding
+    chunk = eise_module._pair_chunk(G * K)
+    counts = []
+    for labels in (few, many):
+        pairs = jax.jit(eise_module._distinct_pairs)(jnp.asarray(labels))
+        expected = []
+        for m in range(K):
+            for g in range(G):
+                if labels[g, m] >= 0 and (m, labels[g, m]) not in expected:
+                    expected.append((m, labels[g, m]))
+        n = len(expected)
+        member, cluster, of = (np.asarray(a) for a in pairs[:3])
+        assert list(zip(member[:n].tolist(), cluster[:n].tolist())) == expected
+        assert not np.any(member[n:]) and not np.any(cluster[n:])
+        for g, m in np.argwhere(labels >= 0):
+            assert (member[of[g, m]], cluster[of[g, m]]) == (m, labels[g, m])
+        assert int(pairs.chunks) == -(-n // chunk)
+        counts.append(n)
+    assert counts == [K + 4, G * (K - 2)] and -(-counts[1] // chunk) == 4
+    batched = jax.vmap(eise_module._distinct_pairs)(jnp.asarray(np.stack([few, many])))
+    np.testing.assert_array_equal(batched.chunks, [4, 4])  # the batch runs the most chunks
+
+
+def _relaxed_problems_2d(method):
+    """2-D relaxations: clusterings on the grid, and random labels with nearly every pair distinct."""
+    problems = []
+    for seed in range(4):
+        gm = random_gm(seed, n=10, d=2)[0]
+        grid, labels, counts = _grid_for(gm)
+        if seed == 3:  # every pair of the 10 components distinct
+            shift = np.random.default_rng(seed).integers(0, 10, labels.shape[1])
+            labels = jnp.asarray((np.arange(labels.shape[0])[:, None] + shift) % 10)
+        problems.append((gm, grid, labels, counts))
+    return problems
+
+
+@pytest.mark.parametrize("method", ["ci", "moment"])
+def test_relaxation_over_distinct_pairs_is_the_full_one(method):
+    """For d >= 2 the search evaluates ``J_hr`` once per distinct pair, in chunks (a loop as long
+    as the batch's longest): value and slopes equal those over all ``G K`` pairs, alone and under
+    vmap with runs that need one chunk and runs that need four. The same arithmetic on the same
+    inputs, but XLA fuses the two programs differently: here a few ulps apart in the slopes (on
+    the benchmark's captured 4-D searches every result was bit-identical)."""
+    options = dict(method=method, regularizer="exp", ise_scale=0.5)
+    value = partial(eise_module._relaxed_at, **options)
+    slopes = partial(eise_module._relaxed_slopes, **options)
+
+    def evaluate(distinct_pairs, gm, grid, labels, counts, lam):
+        parts = eise_module._relaxed_parts(gm, grid, labels, counts, method, distinct_pairs=distinct_pairs)
+        assert (parts.pairs is None) != distinct_pairs
+        args = (parts, jnp.asarray(0.2), jnp.asarray(0.01))
+        return value(lam, args), *slopes(lam, args)
+
+    problems = _relaxed_problems_2d(method)
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *problems)
+    lams = jnp.asarray([1.3, 1.9, 2.45, 2.0])
+    chunks = jax.vmap(lambda labels: eise_module._distinct_pairs(labels).chunks)(stacked[2])
+    np.testing.assert_array_equal(chunks, 4)  # the last problem's pairs fill every chunk
+    over_pairs, over_all = (jax.jit(jax.vmap(partial(evaluate, b)))(*stacked, lams) for b in (True, False))
+    for a, b in zip(over_pairs, over_all):
+        assert np.all(np.isfinite(b))
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(np.max(np.abs(b))))
+    for k, problem in enumerate(problems):  # alone: as many chunks as this run needs
+        alone = (jax.jit(partial(evaluate, b))(*problem, lams[k]) for b in (True, False))
+        for a, b in zip(*alone):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(np.max(np.abs(b))))
+
+
+def test_search_in_2d_jit_eager_vmap_float32_and_gradient():
+    """The 2-D search (distinct pairs): jit == eager, vmap == loop, float32 near float64, and
+    reverse-mode derivatives of its ``λ`` through Newton (the custom JVP's scan runs over all
+    pairs) equal finite differences."""
+    gms = [random_gm(s, n=10, d=2)[0] for s in range(4)]
+    options = dict(lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6)
+
+    def search(gm, alpha=0.01):
+        return search_confidence(gm, alpha=alpha, **options)
+
+    eager = [search(g) for g in gms]
+    assert any(int(r.iterations) > 1 for r in eager)
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
+    batched = jax.jit(jax.vmap(search))(stacked)
+    for k, r in enumerate(eager):
+        for a, b in zip(jax.tree_util.tree_leaves(r), jax.tree_util.tree_leaves(batched)):
+            if jnp.issubdtype(a.dtype, jnp.floating):  # batched arithmetic rounds differently
+                np.testing.assert_allclose(a, b[k], rtol=1e-12, atol=1e-14)
+            else:
+                np.testing.assert_array_equal(a, b[k])
+    g32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, gms[0])
+    r32 = search(g32)
+    assert r32.lam_newton.dtype == jnp.float32
+    np.testing.assert_allclose(r32.lam_newton, eager[0].lam_newton, rtol=1e-4)
+    np.testing.assert_array_equal(r32.labels, eager[0].labels)
+
+    lam_newton = jax.jit(lambda a: search(gms[1], a).lam_newton)
+    slope = jax.jit(jax.grad(lambda a: search(gms[1], a).lam_newton))(0.01)
+    h = 1e-5
+    fd = (lam_newton(0.01 + h) - lam_newton(0.01 - h)) / (2 * h)
+    assert np.isfinite(slope) and slope != 0.0
+    np.testing.assert_allclose(slope, fd, rtol=1e-4)
+
+
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_newton_stays_where_the_relaxation_is_flat(dtype):
     """Components too far apart to merge anywhere on the grid: every grid point clusters alike, the
