@@ -360,8 +360,8 @@ class _RelaxedParts(NamedTuple):
 class _Pairs(NamedTuple):
     """``J_hr``'s ``G K`` terms ``(g, m)`` pair component ``m`` with the cluster ``l_g(m)`` grid point
     ``g`` puts it in, and the pair's term does not depend on ``g``; neighbouring grid points mostly
-    cluster alike, so few pairs are distinct (on the seed 000 systems about 7 of 220 on average, at
-    most about 90). :func:`_over_pairs` evaluates each distinct pair once.
+    cluster alike, so few pairs are distinct (on the seed 000 4-D system about 7 of 220 on average,
+    at most about 90). :func:`_over_pairs` evaluates each distinct pair once.
 
     Attributes:
         member, cluster: ``(G K,)`` int32, the distinct pairs ``(m, c)`` first (by ``m``, then by
@@ -906,8 +906,8 @@ def _newton(
     ``fun`` must take everything it differentiates through ``args`` (a pytree), not a closure.
     ``slopes(λ, args) -> (f', f'')`` gives the derivatives (default: forward-over-forward ``jvp``).
     ``differentiable(args)``: the ``args`` (and their tangents) the differentiated ``scan`` takes,
-    giving the same values (:func:`search_confidence` drops :class:`_Pairs`, whose loop has no
-    reverse mode).
+    the same arithmetic (:func:`search_confidence` drops :class:`_Pairs`, whose loop has no reverse
+    mode: the scan's values then equal the loop's to rounding).
 
     Returns:
         ``(λ, fun(λ), converged, iterations)``.
