@@ -495,6 +495,18 @@ def test_search_in_2d_jit_eager_vmap_float32_and_gradient():
     np.testing.assert_allclose(slope, fd, rtol=1e-4)
 
 
+def test_search_under_vmap_over_no_runs():
+    """Both batch rules (the clustering at Newton's λ, the pairs' chunk count) take an empty batch."""
+    gm = random_gm(0, n=10, d=2)[0]
+    none = jax.tree_util.tree_map(lambda a: jnp.stack([a])[:0], gm)
+    res = jax.vmap(
+        lambda g: search_confidence(
+            g, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6, alpha=0.01
+        )
+    )(none)
+    assert res.lam.shape == (0,) and res.labels.shape == (0, K)
+
+
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_newton_stays_where_the_relaxation_is_flat(dtype):
     """Components too far apart to merge anywhere on the grid: every grid point clusters alike, the

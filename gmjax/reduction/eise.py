@@ -383,12 +383,13 @@ def _pair_chunk(n_pairs: int) -> int:
 
 
 def _batch_max(x: Array) -> Array:
-    """``x`` ``()``; under ``vmap`` the batch's largest, unbatched (one trip count for all runs)."""
+    """``x`` ``()``, non-negative; under ``vmap`` the batch's largest (0 for no runs), unbatched (one
+    trip count for all runs)."""
     identity = jax.custom_batching.custom_vmap(lambda x: x)
 
     @identity.def_vmap
     def _largest(axis_size, in_batched, x):
-        return (jnp.max(x, axis=0) if in_batched[0] else x), False
+        return (jnp.max(x, axis=0, initial=0) if in_batched[0] else x), False
 
     return identity(x)
 
@@ -942,6 +943,8 @@ def _cluster_unless_known(cluster, known: Array, known_labels: Array, *operands)
         known, labels, *operands = jax.tree_util.tree_map(
             spread, [known, known_labels, *operands], list(in_batched)
         )
+        if axis_size == 0:
+            return labels, True
         block = min(_CLUSTER_BLOCK, axis_size)
         n_blocks = -(-axis_size // block)
         need = ~known
