@@ -387,14 +387,13 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
 
 def test_distinct_pairs_match_a_loop_alone_and_under_vmap():
     """``J_hr``'s distinct (component, cluster) pairs, listed by component then first grid point,
-    with every live ``(g, m)`` pointing at its own; under vmap the chunk count is the batch's most."""
+    with every live ``(g, m)`` pointing at its own and their count; under vmap each run's own."""
     rng = np.random.default_rng(0)
     G = 11
     few = np.tile(rng.integers(0, 3, K), (G, 1))  # every grid point alike: one pair per component
     few[6:, :4] = 5
     many = (np.arange(G)[:, None] + rng.integers(0, K, K)) % K  # every pair distinct
     many[:, -2:] = -1  # padding
-    chunk = eise_module._pair_chunk(G * K)
     counts = []
     for labels in (few, many):
         pairs = jax.jit(eise_module._distinct_pairs)(jnp.asarray(labels))
@@ -409,11 +408,11 @@ def test_distinct_pairs_match_a_loop_alone_and_under_vmap():
         assert not np.any(member[n:]) and not np.any(cluster[n:])
         for g, m in np.argwhere(labels >= 0):
             assert (member[of[g, m]], cluster[of[g, m]]) == (m, labels[g, m])
-        assert int(pairs.chunks) == -(-n // chunk)
+        assert int(pairs.n_distinct) == n
         counts.append(n)
-    assert counts == [K + 4, G * (K - 2)] and -(-counts[1] // chunk) == 4
+    assert counts == [K + 4, G * (K - 2)]
     batched = jax.vmap(eise_module._distinct_pairs)(jnp.asarray(np.stack([few, many])))
-    np.testing.assert_array_equal(batched.chunks, [4, 4])  # the batch runs the most chunks
+    np.testing.assert_array_equal(batched.n_distinct, counts)
 
 
 def _relaxed_problems_2d(method):
@@ -431,11 +430,12 @@ def _relaxed_problems_2d(method):
 
 @pytest.mark.parametrize("method", ["ci", "moment"])
 def test_relaxation_over_distinct_pairs_is_the_full_one(method):
-    """For d >= 2 the search evaluates ``J_hr`` once per distinct pair, in chunks (a loop as long
-    as the batch's longest): value and slopes equal those over all ``G K`` pairs, alone and under
-    vmap with runs that need one chunk and runs that need four. The same arithmetic on the same
-    inputs, but XLA fuses the two programs differently: here a few ulps apart in the slopes (on
-    the benchmark's captured 4-D searches every result was bit-identical)."""
+    """For d >= 2 the search evaluates ``J_hr`` once per distinct pair, in chunks: value and slopes
+    equal those over all ``G K`` pairs, alone (runs that need one chunk and runs that need four)
+    and under vmap (the batch's pairs side by side: several chunks, a run's pairs split across
+    two), also under a vmap of vmaps. The same arithmetic on the same inputs, but XLA fuses the
+    programs differently: here a few ulps apart in the slopes (on the benchmark's captured 4-D
+    searches every result was bit-identical)."""
     options = dict(method=method, regularizer="exp", ise_scale=0.5)
     value = partial(eise_module._relaxed_at, **options)
     slopes = partial(eise_module._relaxed_slopes, **options)
@@ -449,12 +449,26 @@ def test_relaxation_over_distinct_pairs_is_the_full_one(method):
     problems = _relaxed_problems_2d(method)
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *problems)
     lams = jnp.asarray([1.3, 1.9, 2.45, 2.0])
-    chunks = jax.vmap(lambda labels: eise_module._distinct_pairs(labels).chunks)(stacked[2])
-    np.testing.assert_array_equal(chunks, 4)  # the last problem's pairs fill every chunk
+    counts = np.asarray(jax.vmap(lambda labels: eise_module._distinct_pairs(labels).n_distinct)(stacked[2]))
+    n_pairs = stacked[2].shape[1] * stacked[2].shape[2]
+    alone_chunk = eise_module._pair_chunk(n_pairs)
+    assert -(-counts.min() // alone_chunk) == 1 and -(-counts[-1] // alone_chunk) == 4
+    size = eise_module._distinct_pairs(stacked[2][0]).member.size
+    batch_chunk = eise_module._pair_chunk(n_pairs, len(counts))
+    ends = np.cumsum(counts)
+    split = (ends - counts) // batch_chunk != (ends - 1) // batch_chunk  # a run's pairs in two chunks
+    assert counts.sum() > 3 * batch_chunk and np.any(split) and size >= n_pairs
     over_pairs, over_all = (jax.jit(jax.vmap(partial(evaluate, b)))(*stacked, lams) for b in (True, False))
     for a, b in zip(over_pairs, over_all):
         assert np.all(np.isfinite(b))
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(np.max(np.abs(b))))
+    if method == "moment":
+        return
+    # a vmap of vmaps (the inner batch rule, batched again): two runs of two
+    twice = jax.tree_util.tree_map(lambda a: a.reshape((2, 2) + a.shape[1:]), (*stacked, lams))
+    nested = jax.jit(jax.vmap(jax.vmap(partial(evaluate, True))))(*twice)
+    for a, b in zip(nested, over_all):
+        np.testing.assert_allclose(a.reshape(b.shape), b, rtol=1e-12, atol=1e-14 * float(np.max(np.abs(b))))
     for k, problem in enumerate(problems):  # alone: as many chunks as this run needs
         alone = (jax.jit(partial(evaluate, b))(*problem, lams[k]) for b in (True, False))
         for a, b in zip(*alone):
@@ -496,7 +510,8 @@ def test_search_in_2d_jit_eager_vmap_float32_and_gradient():
 
 
 def test_search_under_vmap_over_no_runs():
-    """Both batch rules (the clustering at Newton's λ, the pairs' chunk count) take an empty batch."""
+    """Both batch rules (the clustering at Newton's λ, the batch's pairs side by side) take an empty
+    batch."""
     gm = random_gm(0, n=10, d=2)[0]
     none = jax.tree_util.tree_map(lambda a: jnp.stack([a])[:0], gm)
     res = jax.vmap(

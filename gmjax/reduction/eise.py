@@ -34,8 +34,9 @@ or the moment sums per cluster, and the ``(G, G)`` matrix of ``J_hh`` cross sums
 evaluation then combines them with ``π(λ)`` and needs ``J_hr`` only for the ``G K`` pairs (component,
 the cluster a grid point puts it in). Equal to the dense soft merge to rounding
 (``tests/test_pcm.py``). Neighbouring grid points mostly cluster alike, so few of those pairs are
-distinct; for ``d >= 2`` the search evaluates each distinct pair once (``_Pairs``, ``_over_pairs``):
-in 4-D, where the pairs' ``d × d`` algebra dominates, about 40 % less time per Newton step.
+distinct; for ``d >= 2`` the search evaluates each distinct pair once (``_Pairs``, ``_over_pairs``;
+under ``vmap`` the distinct pairs of all runs side by side): in 4-D, where the pairs' ``d × d``
+algebra dominates, a relaxed evaluation costs a fifth to a quarter of one over all pairs.
 
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
 :func:`_newton`); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
@@ -364,34 +365,24 @@ class _Pairs(NamedTuple):
     at most 81 in 10 × 1000). :func:`_over_pairs` evaluates each distinct pair once.
 
     Attributes:
-        member, cluster: ``(G K,)`` int32, the distinct pairs ``(m, c)`` first (by ``m``, then by
-            the first grid point that makes them), then ``(0, 0)``.
+        member, cluster: ``(n,)`` int32 (``n >= G K``, a whole number of :func:`_pair_chunk`), the
+            distinct pairs ``(m, c)`` first (by ``m``, then by the first grid point that makes
+            them), then ``(0, 0)``.
         of: ``(G, K)`` int32, the index of pair ``(g, m)`` in ``member`` / ``cluster`` (0 on padding).
-        chunks: ``()`` int32, how many chunks of :func:`_pair_chunk` pairs hold every distinct
-            pair; under ``vmap`` the batch's largest, unbatched, so that the loop runs as one.
+        n_distinct: ``()`` int32, the number of distinct pairs.
     """
 
     member: Array
     cluster: Array
     of: Array
-    chunks: Array
+    n_distinct: Array
 
 
-def _pair_chunk(n_pairs: int) -> int:
-    """How many pairs :func:`_over_pairs` evaluates at a time, for ``n_pairs = G K``: a quarter."""
-    return -(-n_pairs // 4)
-
-
-def _batch_max(x: Array) -> Array:
-    """``x`` ``()``, non-negative; under ``vmap`` the batch's largest (0 for no runs), unbatched (one
-    trip count for all runs)."""
-    identity = jax.custom_batching.custom_vmap(lambda x: x)
-
-    @identity.def_vmap
-    def _largest(axis_size, in_batched, x):
-        return (jnp.max(x, axis=0, initial=0) if in_batched[0] else x), False
-
-    return identity(x)
+def _pair_chunk(n_pairs: int, runs: int = 1) -> int:
+    """How many pairs :func:`_over_pairs` evaluates at a time: alone, a quarter of a run's
+    ``n_pairs = G K``; under ``vmap`` over ``runs`` runs, a sixteenth of all runs' ``n_pairs``
+    (the batch's distinct pairs side by side: on the seed 000 4-D system about 3 % of them)."""
+    return -(-n_pairs * runs // (4 if runs == 1 else 16))
 
 
 def _distinct_pairs(labels: Array) -> _Pairs:
@@ -409,43 +400,83 @@ def _distinct_pairs(labels: Array) -> _Pairs:
     members = jnp.broadcast_to(jnp.arange(K, dtype=jnp.int32), (G, K))
     member = jnp.zeros(size, jnp.int32).at[slot].set(members, mode="drop")
     cluster = jnp.zeros(size, jnp.int32).at[slot].set(labels.astype(jnp.int32), mode="drop")
-    count = _batch_max(jax.lax.stop_gradient(jnp.sum(new.astype(jnp.int32))))
-    return _Pairs(member, cluster, of, jnp.maximum(-(-count // chunk), 1).astype(jnp.int32))
+    count = jax.lax.stop_gradient(jnp.sum(new.astype(jnp.int32)))
+    return _Pairs(member, cluster, of, count)
 
 
-def _over_pairs(fn, parts: _RelaxedParts) -> tuple[Array, ...]:
-    """``fn(u, P, c)``'s arrays at ``J_hr``'s ``(G, K)`` pairs: component ``(u_m, P_m)`` and cluster
-    index ``c = l_g(m)`` (``fn`` elementwise in the pairs, over any leading shape).
+def _over_pairs(fn, parts: _RelaxedParts, at_cluster) -> tuple[Array, ...]:
+    """``fn(u, P, s)``'s arrays at ``J_hr``'s ``(G, K)`` pairs: component ``(u_m, P_m)`` and ``s``,
+    the pytree ``at_cluster`` of per-cluster arrays ``(C, ...)`` at the cluster ``c = l_g(m)``
+    (``fn`` elementwise in the pairs, over any leading shape).
 
     For ``d = 1`` over all ``G K`` pairs at once; otherwise once per distinct pair (:class:`_Pairs`),
-    a chunk of :func:`_pair_chunk` pairs at a time for as many chunks as the batch's longest run
-    needs, then gathered. The same arithmetic on the same inputs, so equal to rounding (XLA may
-    fuse the two programs differently: a few ulps in ``tests/test_pcm.py``'s 2-D cases; on 5 × 1000
-    captured 4-D benchmark searches every result bit-identical). The loop has no reverse mode.
+    then gathered. Alone, a chunk of :func:`_pair_chunk` pairs at a time for as many chunks as the
+    run needs. Under ``vmap`` the distinct pairs of all the batch's runs side by side, in chunks of a
+    sixteenth of all runs' pairs (usually one), so that no run evaluates pairs it does not have.
+    The same arithmetic on the same inputs, so equal to rounding (XLA may fuse the programs
+    differently: a few ulps in ``tests/test_pcm.py``'s 2-D cases; on 5 × 1000 captured 4-D
+    benchmark searches every result bit-identical). The loops have no reverse mode.
     """
     gm = parts.gm
     if parts.pairs is None:
-        return fn(gm.means[None], gm.covs[None], jnp.maximum(parts.labels, 0))
-    pairs = parts.pairs
-    chunk = _pair_chunk(pairs.of.size)
+        at_own = jax.tree_util.tree_map(lambda a: a[jnp.maximum(parts.labels, 0)], at_cluster)
+        return fn(gm.means[None], gm.covs[None], at_own)
 
-    def at_chunk(j):
-        member = jax.lax.dynamic_slice_in_dim(pairs.member, j * chunk, chunk)
-        cluster = jax.lax.dynamic_slice_in_dim(pairs.cluster, j * chunk, chunk)
-        return fn(gm.means[member], gm.covs[member], cluster)
+    def alone(member, cluster, of, count, means, covs, at_cluster):
+        chunk = _pair_chunk(of.size)
 
-    shapes = jax.eval_shape(at_chunk, 0)
-    buffers = tuple(jnp.zeros(pairs.member.shape + s.shape[1:], s.dtype) for s in shapes)
+        def at_chunk(j):
+            m = jax.lax.dynamic_slice_in_dim(member, j * chunk, chunk)
+            c = jax.lax.dynamic_slice_in_dim(cluster, j * chunk, chunk)
+            return fn(means[m], covs[m], jax.tree_util.tree_map(lambda a: a[c], at_cluster))
 
-    def next_chunk(state):
-        j, buffers = state
-        values = at_chunk(j)
-        return j + 1, tuple(
-            jax.lax.dynamic_update_slice_in_dim(b, v, j * chunk, 0) for b, v in zip(buffers, values)
+        def next_chunk(state):
+            j, buffers = state
+            values = at_chunk(j)
+            return j + 1, tuple(
+                jax.lax.dynamic_update_slice_in_dim(b, v, j * chunk, 0) for b, v in zip(buffers, values)
+            )
+
+        buffers = tuple(jnp.zeros(member.shape + s.shape[1:], s.dtype) for s in jax.eval_shape(at_chunk, 0))
+        _, buffers = jax.lax.while_loop(lambda s: s[0] * chunk < count, next_chunk, (0, buffers))
+        return tuple(b[of] for b in buffers)
+
+    side_by_side = jax.custom_batching.custom_vmap(alone)
+
+    @side_by_side.def_vmap
+    def _batch_rule(axis_size, in_batched, *operands):
+        spread = lambda a, b: a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a))  # noqa: E731
+        member, cluster, of, count, means, covs, at_cluster = (
+            jax.tree_util.tree_map(spread, a, b) for a, b in zip(operands, in_batched)
         )
+        B, size = member.shape
+        chunk = _pair_chunk(of.shape[1] * of.shape[2], B)
+        ends = jnp.cumsum(count)  # the batch's distinct pairs, run after run
+        total = ends[-1] if B else jnp.zeros((), count.dtype)
 
-    _, buffers = jax.lax.while_loop(lambda s: s[0] < pairs.chunks, next_chunk, (0, buffers))
-    return tuple(b[pairs.of] for b in buffers)
+        def at_chunk(j):  # the batch's pairs j chunk, …, (j + 1) chunk - 1: run r, its pair k
+            flat = j * chunk + jnp.arange(chunk, dtype=count.dtype)
+            r = jnp.minimum(jnp.searchsorted(ends, flat, side="right"), B - 1)
+            k = jnp.clip(flat - (ends[r] - count[r]), 0, size - 1)
+            m, c = member[r, k], cluster[r, k]
+            s = jax.tree_util.tree_map(lambda a: a[r, c], at_cluster)
+            return fn(means[r, m], covs[r, m], s), jnp.where(flat < total, r, B), k  # r = B: dropped
+
+        def next_chunk(state):
+            j, buffers = state
+            values, r, k = at_chunk(j)
+            return j + 1, tuple(b.at[r, k].set(v, mode="drop") for b, v in zip(buffers, values))
+
+        shapes = jax.eval_shape(at_chunk, 0)[0]
+        buffers = tuple(jnp.zeros((B, size) + s.shape[1:], s.dtype) for s in shapes)
+        _, buffers = jax.lax.while_loop(lambda s: s[0] * chunk < total, next_chunk, (0, buffers))
+        out = tuple(jax.vmap(lambda b, o: b[o])(b, of) for b in buffers)
+        return out, tuple(True for _ in out)
+
+    pairs = parts.pairs
+    return side_by_side(
+        pairs.member, pairs.cluster, pairs.of, pairs.n_distinct, gm.means, gm.covs, at_cluster
+    )
 
 
 def _relaxed_parts(
@@ -533,7 +564,7 @@ def _relaxed_value(
     # J_hr: component m against the cluster that grid point k puts it in, weighted by π_k (eq 35)
     own = jnp.maximum(parts.labels, 0)  # (G, K)
     valid = (parts.labels >= 0) & gm.mask[None, :] & live[own]
-    (log_cross,) = _over_pairs(lambda u, P, c: (gaussian.spd_logpdf(u, mu[c], P + cov[c]),), parts)
+    (log_cross,) = _over_pairs(lambda u, P, s: (gaussian.spd_logpdf(u, s[0], P + s[1]),), parts, (mu, cov))
     w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
     cross = jnp.exp(jnp.where(valid, log_cross, -jnp.inf)) * W[own] * w[None, :]
     j_hr = pi @ jnp.sum(cross, axis=1)
@@ -688,12 +719,11 @@ def _relaxed_slopes(lam, args, *, method: str, regularizer: str, ise_scale: floa
     own = jnp.maximum(parts.labels, 0)  # (G, K)
     valid = (parts.labels >= 0) & gm.mask[None, :] & live[own]
 
-    def pair_terms(u, P, c):  # ℓ, ℓ', ℓ'' of component (u, P) against cluster c
-        S = P + covs[0][c]
-        S1, S2 = covs[1][c], covs[2][c]
-        m1, m2 = mu[1][c], mu[2][c]
+    def pair_terms(u, P, s):  # ℓ, ℓ', ℓ'' of component (u, P) against cluster s = (ū, P̄ and slopes)
+        (m0, m1, m2), (S0, S1, S2) = s
+        S = P + S0
         Si = gaussian.spd_inv(S)
-        v = _mv(Si, u - mu[0][c])
+        v = _mv(Si, u - m0)
         Si_S1 = _mm(Si, S1)
         S1_v = _mv(S1, v)
         z = S1_v + m1
@@ -705,9 +735,9 @@ def _relaxed_slopes(lam, args, *, method: str, regularizer: str, ise_scale: floa
             + _dot(v, m2)
             + 0.5 * _dot(v, _mv(S2, v))
         )
-        return gaussian.spd_logpdf(u, mu[0][c], S), ell1, ell2
+        return gaussian.spd_logpdf(u, m0, S), ell1, ell2
 
-    log_cross, ell1, ell2 = _over_pairs(pair_terms, parts)  # (G, K) each
+    log_cross, ell1, ell2 = _over_pairs(pair_terms, parts, (tuple(mu), tuple(covs)))  # (G, K) each
     w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
     e = jnp.exp(jnp.where(valid, log_cross, -jnp.inf)) * w[None, :]
     Wo0, Wo1, Wo2 = W0[own], W1[own], W2[own]
