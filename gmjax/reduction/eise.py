@@ -36,7 +36,7 @@ the cluster a grid point puts it in). Equal to the dense soft merge to rounding
 (``tests/test_pcm.py``). Neighbouring grid points mostly cluster alike, so few of those pairs are
 distinct; for ``d >= 2`` the search evaluates each distinct pair once (``_Pairs``, ``_over_pairs``;
 under ``vmap`` the distinct pairs of all runs side by side): in 4-D, where the pairs' ``d × d``
-algebra dominates, a relaxed evaluation costs a fifth to a quarter of one over all pairs.
+algebra dominates, a relaxed evaluation costs a little over a quarter of one over all pairs.
 
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
 :func:`_newton`); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
