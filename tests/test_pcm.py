@@ -244,7 +244,8 @@ def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
 @pytest.mark.parametrize(("method", "regularizer"), [("ci", "exp"), ("moment", "log10")])
 def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
     """Newton's derivatives of the relaxed EISE, derived by hand (``eise._relaxed_slopes``), equal
-    forward-over-forward ``jvp`` of its value, padding included; float32 to its precision."""
+    forward-over-forward ``jvp`` of its value, and the value they come with equals the value,
+    padding included; float32 to its precision."""
     options = dict(method=method, regularizer=regularizer, ise_scale=0.5)
     fun = partial(eise_module._relaxed_at, **options)
     by_hand = partial(eise_module._relaxed_slopes, **options)
@@ -266,10 +267,13 @@ def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
     for seed in (3 + d, 11):
         f, jvp, hand = evaluate(jnp.float64, seed)
         scale = float(np.max(np.abs(f)))  # where all grid clusterings agree the slopes are rounding
-        steepest = max(steepest, float(np.max(np.abs(jvp[0]))) / scale)
+        steepest = max(steepest, float(np.max(np.abs(jvp[1]))) / scale)
+        np.testing.assert_allclose(hand[0], f, rtol=1e-12)  # the value, by its own formula
+        np.testing.assert_allclose(jvp[0], f, rtol=1e-14)
         for exact, ours in zip(jvp, hand):
             np.testing.assert_allclose(ours, exact, rtol=1e-9, atol=1e-12 * scale)
-        _, _, hand32 = evaluate(jnp.float32, seed)  # (float32 jvp can be NaN where these are not)
+        f32, _, hand32 = evaluate(jnp.float32, seed)  # (float32 jvp can be NaN where these are not)
+        np.testing.assert_allclose(hand32[0], f32, rtol=1e-5)
         for exact, ours in zip(jvp, hand32):
             assert ours.dtype == jnp.float32
             np.testing.assert_allclose(ours, exact, rtol=1e-3, atol=1e-4 * scale)
@@ -353,7 +357,7 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
         return eise_module._newton(fun, args, lam0, *bounds, 8, 1e-6, args[1], slopes=slopes)
 
     def fixed(args, lam0):
-        return eise_module._newton_loop(fun, slopes, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
+        return eise_module._newton_loop(slopes, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
 
     batched_early, batched_fixed = jax.jit(jax.vmap(early))(args, lam0), jax.jit(jax.vmap(fixed))(args, lam0)
     for a, b in zip(batched_early, batched_fixed):

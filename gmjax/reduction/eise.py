@@ -39,7 +39,8 @@ under ``vmap`` the distinct pairs of all runs side by side): in 4-D, where the p
 algebra dominates, a relaxed evaluation costs a little over a quarter of one over all pairs.
 
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
-:func:`_newton`); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
+:func:`_newton`; every candidate ``λ`` is evaluated with its derivatives, which the next step
+starts from, so a step whose full length is accepted costs one evaluation); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
 is kept whenever Newton failed or did not do at least as well (``used_fallback`` in the result).
 The clustering at Newton's ``λ`` is a grid point's wherever the two judgment matrices are equal
 (the clustering depends on ``λ`` only through it); only the other runs run the overlap sweep
@@ -496,9 +497,10 @@ def _relaxed_parts(
     gathers cost what they save). The evaluations then loop over them, which has no reverse mode.
 
     The merge statistics are sums over the members of each cluster (:func:`_cluster_sums`), and
-    ``hh[g, h] = Σ_m w_m T_h[m, l_g(m)]`` with ``T_h[m, c] = Σ_{n ∈ c} S_mn w_n`` (``l_g(m)`` the
-    cluster grid point ``g`` puts ``m`` in): one one-hot product for ``T`` and a gather, instead of
-    a second ``O(G² K C)`` contraction. Equal to the one-hot sums to rounding.
+    ``hh[g, h] = Σ_n w_n U_g[l_h(n), n]`` with ``U_g[c, n] = Σ_{m ∈ c} w_m S_mn`` (``l_g(m)`` the
+    cluster grid point ``g`` puts ``m`` in): ``G K`` row sums for ``U`` and a gather, ``O(G K²)``
+    additions instead of a one-hot product's ``O(G K² C)`` multiply-adds. Equal to the one-hot sums
+    to rounding.
     """
     dtype = gm.means.dtype
     K = gm.capacity
@@ -506,12 +508,10 @@ def _relaxed_parts(
     labels = jnp.where(gm.mask[None, :], grid_labels, -1)  # (G, K)
     sums = jax.vmap(partial(_cluster_sums, num_clusters=K), in_axes=(None, 0))
     S = self_overlaps(gm) if overlaps is None else overlaps
-    # T[h, m, c] = Σ_{n: l_h(n) = c} S_mn w_n, then hh[g, h] = Σ_m w_m T[h, m, l_g(m)]
-    onehot = jax.vmap(lambda lab: onehot_membership(lab, K, dtype))(labels)  # (G, K, C)
-    T = jnp.einsum("mn,hnc->hmc", S * w[None, :], onehot)
     own = jnp.maximum(labels, 0)
-    T_own = jnp.take_along_axis(T[None], own[:, None, :, None], axis=3)[..., 0]  # (G, G, K)
-    hh = jnp.einsum("ghm,m->gh", jnp.where(labels[:, None, :] >= 0, T_own, 0.0), w)
+    U = sums(w[:, None] * S, labels)  # (G, C, K): U[g, c, n] = Σ_{m: l_g(m) = c} w_m S_mn
+    U_own = U[:, own, jnp.arange(K)]  # (G, G, K): U[g, l_h(n), n]
+    hh = jnp.einsum("ghn,n->gh", jnp.where(labels[None, :, :] >= 0, U_own, 0.0), w)
     if method == "ci":
         info = gaussian.spd_inv(gm.covs) if info is None else info
         w_info = jnp.where(gm.mask[:, None, None], info, 0.0) * w[:, None, None]
@@ -648,8 +648,10 @@ def _penalty_slopes(n: Array, n_ref: Array, alpha: ArrayLike, regularizer: str) 
     )
 
 
-def _relaxed_slopes(lam, args, *, method: str, regularizer: str, ise_scale: float) -> tuple[Array, Array]:
-    """First and second derivative in ``λ`` of :func:`_relaxed_at`, derived by hand.
+def _relaxed_slopes(
+    lam, args, *, method: str, regularizer: str, ise_scale: float
+) -> tuple[Array, Array, Array]:
+    """Value, first and second derivative in ``λ`` of :func:`_relaxed_at`, derived by hand.
 
     Forward-over-forward ``jax.jvp`` of the relaxation carries every intermediate through two
     tangent orders; the chain rule through ``π(λ)`` (:func:`_softmax_slopes`) needs only the
@@ -660,8 +662,9 @@ def _relaxed_slopes(lam, args, *, method: str, regularizer: str, ise_scale: floa
     * ``ℓ'' = -½ tr(S^{-1} S'') + ½ tr(S^{-1} S' S^{-1} S') - zᵀ S^{-1} z + vᵀ ū'' + ½ vᵀ S'' v``
       with ``z = S' v + ū'``,
 
-    and the same with ``S = 2 P̄_c``, ``r = 0`` for ``J_rr``. Equal to the ``jvp`` derivatives to
-    rounding (``tests/test_pcm.py``); Newton's step uses these.
+    and the same with ``S = 2 P̄_c``, ``r = 0`` for ``J_rr``. The value comes with them at little
+    cost (the merged clusters and ``ℓ`` are the value's own). Equal to :func:`_relaxed_at` and its
+    ``jvp`` derivatives to rounding (``tests/test_pcm.py``); Newton's step uses these.
     """
     parts, temperature, alpha = args
     gm = parts.gm
@@ -712,6 +715,7 @@ def _relaxed_slopes(lam, args, *, method: str, regularizer: str, ise_scale: floa
     rho1 = -0.5 * _trace_of_product(prec, covs[1])
     rho2 = -0.5 * _trace_of_product(prec, covs[2]) + 0.5 * _trace_of_product(pc1, pc1)
     W0, W1, W2 = W
+    j_rr = jnp.sum(e_rr * W0**2)
     j_rr1 = jnp.sum(e_rr * (2.0 * W0 * W1 + W0**2 * rho1))
     j_rr2 = jnp.sum(e_rr * (2.0 * W1**2 + 2.0 * W0 * W2 + 4.0 * W0 * W1 * rho1 + W0**2 * (rho1**2 + rho2)))
 
@@ -745,18 +749,22 @@ def _relaxed_slopes(lam, args, *, method: str, regularizer: str, ise_scale: floa
     h1 = jnp.sum(jnp.where(valid, e * (Wo1 + Wo0 * ell1), 0.0), axis=1)
     h2 = jnp.sum(jnp.where(valid, e * (Wo2 + 2.0 * Wo1 * ell1 + Wo0 * (ell1**2 + ell2)), 0.0), axis=1)
     pi0, pi1, pi2 = pis
+    j_hr = pi0 @ h0
     j_hr1 = pi1 @ h0 + pi0 @ h1
     j_hr2 = pi2 @ h0 + 2.0 * pi1 @ h1 + pi0 @ h2
 
     # J_hh = πᵀ H π (H symmetric)
+    j_hh = pi0 @ parts.hh @ pi0
     j_hh1 = 2.0 * pi1 @ parts.hh @ pi0
     j_hh2 = 2.0 * pi2 @ parts.hh @ pi0 + 2.0 * pi1 @ parts.hh @ pi1
 
     n_ref = jnp.sum(gm.mask.astype(jnp.int32))
-    p1, p2 = _penalty_slopes(pis @ parts.counts, n_ref, alpha, regularizer)
+    n_soft = pis @ parts.counts
+    p1, p2 = _penalty_slopes(n_soft, n_ref, alpha, regularizer)
+    f = ise_scale * (j_hh - 2.0 * j_hr + j_rr) + penalty(n_soft[0], n_ref, alpha, regularizer)
     g = ise_scale * (j_hh1 - 2.0 * j_hr1 + j_rr1) + p1
     h = ise_scale * (j_hh2 - 2.0 * j_hr2 + j_rr2) + p2
-    return g, h
+    return f, g, h
 
 
 def relaxed_eise(
@@ -822,22 +830,21 @@ class SearchResult(NamedTuple):
 
 
 def _jvp_slopes(fun, lam, args):
-    """First and second derivative of the scalar ``fun(λ, args)``, forward over forward (``λ`` is a
-    scalar: the cheapest automatic way)."""
+    """Value, first and second derivative of the scalar ``fun(λ, args)``, forward over forward
+    (``λ`` is a scalar: the cheapest automatic way)."""
 
-    def slope(x):
-        return jax.jvp(lambda y: fun(y, args), (x,), (jnp.ones_like(x),))[1]
+    def value_and_slope(x):
+        return jax.jvp(lambda y: fun(y, args), (x,), (jnp.ones_like(x),))
 
-    return jax.jvp(slope, (lam,), (jnp.ones_like(lam),))
+    (f, g), (_, h) = jax.jvp(value_and_slope, (lam,), (jnp.ones_like(lam),))
+    return f, g, h
 
 
-def _newton_step(fun, slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit: bool, carry):
-    """One damped Newton step of :func:`_newton` on ``carry = (λ, f, done, converged, iterations)``;
-    a run already ``done`` keeps its carry."""
-    lam, f, done, ok, it = carry
+def _newton_step(slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit: bool, carry):
+    """One damped Newton step of :func:`_newton` on ``carry = (λ, f, f', f'', done, converged,
+    iterations)``, the slopes those at ``λ``; a run already ``done`` keeps its carry."""
+    lam, f, g, h, done, ok, it = carry
     active = ~done
-    value = lambda x: fun(x, args)  # noqa: E731
-    g, h = _jvp_slopes(fun, lam, args) if slopes is None else slopes(lam, args)
     finite = jnp.isfinite(g) & jnp.isfinite(h)
     convex = finite & (h > 0)
     raw = jnp.where(convex, g / jnp.where(convex, h, 1.0), jnp.sign(g) * radius)
@@ -846,64 +853,60 @@ def _newton_step(fun, slopes, args, lo, hi, tol, radius, n_backtrack: int, early
     raw = jnp.where(finite & ~flat, jnp.clip(raw, -radius, radius), 0.0)
 
     def try_scale(k, acc):
-        found, lam_b, f_b = acc
+        found, best = acc
         cand = jnp.clip(
             lam - raw * jnp.asarray(0.5, raw.dtype) ** k, lo, hi
         )  # (a weak 0.5 ** int32 is float64)
-        f_c = value(cand)
-        better = (~found) & jnp.isfinite(f_c) & (f_c <= f)
-        return (found | better, jnp.where(better, cand, lam_b), jnp.where(better, f_c, f_b))
+        at_cand = (cand, *slopes(cand, args))  # the slopes too: the next step starts from them
+        better = (~found) & jnp.isfinite(at_cand[1]) & (at_cand[1] <= f)
+        return found | better, tuple(jnp.where(better, a, b) for a, b in zip(at_cand, best))
 
     # a zero step (flat) is taken at once: f re-evaluated at λ in another loop may differ in its last bit
-    init = (finite & (raw == 0), lam, f)
+    init = (finite & (raw == 0), (lam, f, g, h))
     if early_exit:  # stop halving once a candidate decreases f (under vmap: once every run has one)
-        _, (found, lam_new, f_new) = jax.lax.while_loop(
+        _, (found, new) = jax.lax.while_loop(
             lambda s: (s[0] <= n_backtrack) & ~s[1][0] & active,
             lambda s: (s[0] + 1, try_scale(s[0], s[1])),
             (jnp.zeros((), jnp.int32), init),
         )
     else:
-        found, lam_new, f_new = jax.lax.fori_loop(0, n_backtrack + 1, try_scale, init)
+        found, new = jax.lax.fori_loop(0, n_backtrack + 1, try_scale, init)
     found = found & finite
+    lam_new, f_new = new[:2]
     small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f - f_new) <= tol * jnp.abs(f))
     converged = found & small
     failed = ~found
-    lam_next = jnp.where(active & found, lam_new, lam)
-    f_next = jnp.where(active & found, f_new, f)
+    moved = active & found
+    lam_next, f_next, g_next, h_next = (jnp.where(moved, a, b) for a, b in zip(new, (lam, f, g, h)))
     done_next = done | (active & (converged | failed))
     ok_next = jnp.where(active, converged, ok)
-    return lam_next, f_next, done_next, ok_next, it + active.astype(jnp.int32)
+    return lam_next, f_next, g_next, h_next, done_next, ok_next, it + active.astype(jnp.int32)
 
 
-def _newton_loop(
-    fun, slopes, steps: int, n_backtrack: int, early_exit: bool, args, lam0, lo, hi, tol, radius
-):
+def _newton_loop(slopes, steps: int, n_backtrack: int, early_exit: bool, args, lam0, lo, hi, tol, radius):
     """:func:`_newton`'s iteration: a ``while_loop`` that stops once every run is done
     (``early_exit``), or a ``scan`` of ``steps`` steps (reverse-differentiable); equal values."""
-    step = partial(_newton_step, fun, slopes, args, lo, hi, tol, radius, n_backtrack, early_exit)
-    f0 = fun(lam0, args)
-    init = (lam0, f0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+    step = partial(_newton_step, slopes, args, lo, hi, tol, radius, n_backtrack, early_exit)
+    init = (lam0, *slopes(lam0, args), jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
     if early_exit:
-        lam, f, _, ok, it = jax.lax.while_loop(lambda c: ~c[2] & (c[4] < steps), step, init)
+        lam, f, *_, ok, it = jax.lax.while_loop(lambda c: ~c[4] & (c[6] < steps), step, init)
     else:
-        (lam, f, _, ok, it), _ = jax.lax.scan(lambda c, _: (step(c), None), init, None, length=steps)
+        (lam, f, *_, ok, it), _ = jax.lax.scan(lambda c, _: (step(c), None), init, None, length=steps)
     return lam, f, ok, it
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4))
-def _newton_early_exit(
-    fun, slopes, steps: int, n_backtrack: int, differentiable, args, lam0, lo, hi, tol, radius
-):
-    return _newton_loop(fun, slopes, steps, n_backtrack, True, args, lam0, lo, hi, tol, radius)
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
+def _newton_early_exit(slopes, steps: int, n_backtrack: int, differentiable, args, lam0, lo, hi, tol, radius):
+    return _newton_loop(slopes, steps, n_backtrack, True, args, lam0, lo, hi, tol, radius)
 
 
 @_newton_early_exit.defjvp
-def _newton_early_exit_jvp(fun, slopes, steps, n_backtrack, differentiable, primals, tangents):
+def _newton_early_exit_jvp(slopes, steps, n_backtrack, differentiable, primals, tangents):
     # differentiate the fixed-length scan: the same values, and reverse mode (a while_loop has none)
     (args, *rest), (args_dot, *rest_dot) = primals, tangents
     primals = (differentiable(args), *rest)
     tangents = (differentiable(args_dot), *rest_dot)
-    return jax.jvp(partial(_newton_loop, fun, slopes, steps, n_backtrack, False), primals, tangents)
+    return jax.jvp(partial(_newton_loop, slopes, steps, n_backtrack, False), primals, tangents)
 
 
 def _newton(
@@ -930,12 +933,18 @@ def _newton(
     small value") — *converged* — or when no halving decreases the function or a derivative is not
     finite — *failed* — or after ``steps`` steps.
 
+    Every candidate is evaluated with its derivatives (``slopes``), so the step after an accepted
+    candidate starts from them: one evaluation per step where the full step decreases the
+    function (nearly always; the halvings are rare), instead of the derivatives at ``λ`` and the
+    value at the candidate apart.
+
     The loops exit early: the step loop once the run is done, the halving loop once a candidate
     decreases ``fun`` (under ``vmap``: once every run in the batch has). ``while_loop`` has no
     reverse mode, so a custom JVP differentiates the equivalent fixed-length ``scan`` instead: the
     values are identical and the derivatives are those of the ``scan`` (``jax.grad`` works).
     ``fun`` must take everything it differentiates through ``args`` (a pytree), not a closure.
-    ``slopes(λ, args) -> (f', f'')`` gives the derivatives (default: forward-over-forward ``jvp``).
+    ``slopes(λ, args) -> (f, f', f'')`` gives the value and derivatives (default:
+    forward-over-forward ``jvp`` of ``fun``).
     ``differentiable(args)``: the ``args`` (and their tangents) the differentiated ``scan`` takes,
     the same arithmetic (:func:`search_confidence` drops :class:`_Pairs`, whose loop has no reverse
     mode: the scan's values then equal the loop's to rounding).
@@ -943,9 +952,8 @@ def _newton(
     Returns:
         ``(λ, fun(λ), converged, iterations)``.
     """
-    return _newton_early_exit(
-        fun, slopes, steps, n_backtrack, differentiable, args, lam0, lo, hi, tol, radius
-    )
+    slopes = partial(_jvp_slopes, fun) if slopes is None else slopes
+    return _newton_early_exit(slopes, steps, n_backtrack, differentiable, args, lam0, lo, hi, tol, radius)
 
 
 _CLUSTER_BLOCK = 16  # runs per block when a batch clusters only the runs that need it
