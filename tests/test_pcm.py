@@ -526,6 +526,68 @@ def test_search_under_vmap_over_no_runs():
     assert res.lam.shape == (0,) and res.labels.shape == (0, K)
 
 
+def _newton_loop_numpy(f, lam, lo, hi, steps=8, tol=1e-9, radius=0.2, n_backtrack=4):
+    """:func:`eise._newton`'s rule as a plain loop that evaluates ``f(λ) -> (value, f', f'')`` at
+    every ``λ`` it moves to; returns ``(λ, f(λ), converged, iterations, halvings)``."""
+    value, g, h = f(lam)
+    ok, halvings = False, 0
+    for it in range(1, steps + 1):
+        finite = np.isfinite(g) and np.isfinite(h)
+        raw = g / h if finite and h > 0 else np.sign(g) * radius
+        flat = abs(g) * radius <= 64 * np.finfo(float).eps * abs(value)
+        raw = float(np.clip(raw, -radius, radius)) if finite and not flat else 0.0
+        found, new = finite and raw == 0, (lam, value)
+        for k in range(n_backtrack + 1):
+            if found:
+                break
+            cand = float(np.clip(lam - raw * 0.5**k, lo, hi))
+            found, new = f(cand)[0] <= value, (cand, f(cand)[0])
+            halvings += k > 0 and found
+        if not found:
+            return lam, value, False, it, halvings
+        ok = abs(new[0] - lam) < tol or abs(value - new[1]) <= tol * abs(value)
+        lam = new[0]
+        value, g, h = f(lam)
+        if ok:
+            return lam, value, True, it, halvings
+    return lam, value, ok, steps, halvings
+
+
+def test_newton_takes_the_derivatives_of_a_halved_candidate():
+    """Where the full step overshoots, Newton halves it, and the next step starts from the halved
+    candidate's derivatives (evaluated with its value): the iterates of a plain loop that evaluates
+    the derivatives afresh wherever it moves, alone, under vmap and in the fixed ``scan``."""
+
+    def fun(lam, args):  # a narrow well: outside ±width the curvature is negative, so the step overshoots
+        centre, width = args
+        return -jnp.exp(-0.5 * ((lam - centre) / width) ** 2)
+
+    def numpy_fun(centre, width):
+        def f(lam):
+            u = (lam - centre) / width
+            e = np.exp(-0.5 * u**2)
+            return -e, e * u / width, e * (1 - u**2) / width**2
+
+        return f
+
+    centres, widths = np.array([2.0, 2.0, 1.5, 2.2]), np.array([0.05, 0.08, 0.1, 0.07])
+    lam0 = centres + np.array([0.09, -0.13, 0.16, 0.12])
+    expected = [_newton_loop_numpy(numpy_fun(c, w), l, 1.0, 3.0) for c, w, l in zip(centres, widths, lam0)]
+    assert sum(e[4] for e in expected) >= 2  # halvings happened
+    newton = lambda args, lam: eise_module._newton(fun, args, lam, 1.0, 3.0, 8, 1e-9, 0.2)  # noqa: E731
+    fixed = lambda args, lam: eise_module._newton_loop(  # noqa: E731
+        partial(eise_module._jvp_slopes, fun), 8, 4, False, args, lam, 1.0, 3.0, 1e-9, 0.2
+    )
+    args = (jnp.asarray(centres), jnp.asarray(widths))
+    batched = [jax.jit(jax.vmap(f))(args, jnp.asarray(lam0)) for f in (newton, fixed)]
+    for i, (lam, value, ok, iterations, _) in enumerate(expected):
+        alone = jax.jit(newton)((args[0][i], args[1][i]), lam0[i])
+        for got in (alone, *(tuple(a[i] for a in b) for b in batched)):
+            np.testing.assert_allclose(float(got[0]), lam, rtol=1e-12)
+            np.testing.assert_allclose(float(got[1]), value, rtol=1e-12)
+            assert bool(got[2]) == ok and int(got[3]) == iterations
+
+
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_newton_stays_where_the_relaxation_is_flat(dtype):
     """Components too far apart to merge anywhere on the grid: every grid point clusters alike, the
