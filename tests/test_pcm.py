@@ -243,12 +243,12 @@ def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
 @pytest.mark.parametrize("d", [1, 3])
 @pytest.mark.parametrize(("method", "regularizer"), [("ci", "exp"), ("moment", "log10")])
 def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
-    """Newton's derivatives of the relaxed EISE, derived by hand (``eise._relaxed_slopes``), equal
-    forward-over-forward ``jvp`` of its value, and the value they come with equals the value,
-    padding included; float32 to its precision."""
+    """Newton's derivatives of the relaxed EISE, derived by hand
+    (``eise._relaxed_value_and_slopes``), equal forward-over-forward ``jvp`` of its value, and the
+    value they come with equals the value, padding included; float32 to its precision."""
     options = dict(method=method, regularizer=regularizer, ise_scale=0.5)
     fun = partial(eise_module._relaxed_at, **options)
-    by_hand = partial(eise_module._relaxed_slopes, **options)
+    by_hand = partial(eise_module._relaxed_value_and_slopes, **options)
     lams = jnp.array([0.7, 1.05, 1.5, 2.0, 2.33, 2.9])  # off, between and on grid points
     # compiled once, for both seeds: the relaxation's parts are arguments
     value, jvp_slopes, hand_slopes = (
@@ -345,7 +345,7 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     equal the scan's, in forward and reverse mode."""
     options = dict(method="ci", regularizer="exp", ise_scale=0.5)
     fun = partial(eise_module._relaxed_at, **options)
-    slopes = partial(eise_module._relaxed_slopes, **options)  # as search_confidence takes them
+    slopes = partial(eise_module._relaxed_value_and_slopes, **options)  # as search_confidence takes them
     problems = [_newton_problem(random_gm(s, n=10)[0]) for s in range(6)] + [
         _newton_problem(case(name)) for name in CASES
     ]
@@ -442,7 +442,7 @@ def test_relaxation_over_distinct_pairs_is_the_full_one(method):
     captured 4-D searches every result was bit-identical)."""
     options = dict(method=method, regularizer="exp", ise_scale=0.5)
     value = partial(eise_module._relaxed_at, **options)
-    slopes = partial(eise_module._relaxed_slopes, **options)
+    slopes = partial(eise_module._relaxed_value_and_slopes, **options)
 
     def evaluate(distinct_pairs, gm, grid, labels, counts, lam):
         parts = eise_module._relaxed_parts(gm, grid, labels, counts, method, distinct_pairs=distinct_pairs)

@@ -25,7 +25,7 @@ nothing to work with. We therefore run Newton on a smooth relaxation with *soft 
   ``N'(λ) = Σ_k π_k N'_k`` in the penalty;
 * as ``τ → 0`` the relaxation tends to the hard EISE of the nearest grid point; for ``τ > 0`` it is
   ``C^∞`` in ``λ``. The Newton step takes its first and second derivative from the chain rule
-  through ``π(λ)`` worked out by hand (``_relaxed_slopes``; equal to ``jax.jvp`` of the value to
+  through ``π(λ)`` worked out by hand (``_relaxed_value_and_slopes``; equal to ``jax.jvp`` of the value to
   rounding, and cheaper), and ``jax.grad`` differentiates through all of it.
 
 **Cost.** ``A(λ)`` enters the merge statistics linearly and ``J_hh`` bilinearly, so the search
@@ -40,8 +40,10 @@ algebra dominates, a relaxed evaluation costs a little over a quarter of one ove
 
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
 :func:`_newton`; every candidate ``λ`` is evaluated with its derivatives, which the next step
-starts from, so a step whose full length is accepted costs one evaluation); it fails when a derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is then computed, and the grid's best
-is kept whenever Newton failed or did not do at least as well (``used_fallback`` in the result).
+starts from, so a step whose full length is accepted costs one evaluation); it fails when a
+derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is
+then computed, and the grid's best is kept whenever Newton failed or did not do at least as well
+(``used_fallback`` in the result).
 The clustering at Newton's ``λ`` is a grid point's wherever the two judgment matrices are equal
 (the clustering depends on ``λ`` only through it); only the other runs run the overlap sweep
 (:func:`_cluster_unless_known`; under ``vmap`` gathered into blocks).
@@ -648,7 +650,7 @@ def _penalty_slopes(n: Array, n_ref: Array, alpha: ArrayLike, regularizer: str) 
     )
 
 
-def _relaxed_slopes(
+def _relaxed_value_and_slopes(
     lam, args, *, method: str, regularizer: str, ise_scale: float
 ) -> tuple[Array, Array, Array]:
     """Value, first and second derivative in ``λ`` of :func:`_relaxed_at`, derived by hand.
@@ -1126,7 +1128,7 @@ def search_confidence(
     )
 
     relaxed = partial(_relaxed_at, method=method, regularizer=regularizer, ise_scale=ise_scale)
-    slopes = partial(_relaxed_slopes, method=method, regularizer=regularizer, ise_scale=ise_scale)
+    slopes = partial(_relaxed_value_and_slopes, method=method, regularizer=regularizer, ise_scale=ise_scale)
     tau = jnp.asarray(temperature, dtype)
     lam_newton, relaxed_newton, newton_ok, iterations = _newton(
         relaxed,
