@@ -553,39 +553,90 @@ def _newton_loop_numpy(f, lam, lo, hi, steps=8, tol=1e-9, radius=0.2, n_backtrac
     return lam, value, ok, steps, halvings
 
 
+def _narrow_well(lam, args):
+    """A narrow well: outside ±width the curvature is negative, so Newton's full step overshoots."""
+    centre, width = args
+    return -jnp.exp(-0.5 * ((lam - centre) / width) ** 2)
+
+
+def _narrow_well_numpy(centre, width):
+    def f(lam):
+        u = (lam - centre) / width
+        e = np.exp(-0.5 * u**2)
+        return -e, e * u / width, e * (1 - u**2) / width**2
+
+    return f
+
+
+def _check_newton_against_the_numpy_loop(centres, widths, lam0):
+    """Newton on the narrow wells, alone, under vmap and in the fixed ``scan``, against the plain
+    loop; returns the loop's results."""
+    expected = [
+        _newton_loop_numpy(_narrow_well_numpy(c, w), l, 1.0, 3.0) for c, w, l in zip(centres, widths, lam0)
+    ]
+    newton = lambda args, lam: eise_module._newton(_narrow_well, args, lam, 1.0, 3.0, 8, 1e-9, 0.2)  # noqa: E731
+    fixed = lambda args, lam: eise_module._newton_loop(  # noqa: E731
+        partial(eise_module._jvp_slopes, _narrow_well), 8, 4, False, args, lam, 1.0, 3.0, 1e-9, 0.2
+    )
+    args = (jnp.asarray(centres), jnp.asarray(widths))
+    batched = [jax.jit(jax.vmap(f))(args, jnp.asarray(lam0)) for f in (newton, fixed)]
+    alone = jax.jit(newton)
+    for i, (lam, value, ok, iterations, _) in enumerate(expected):
+        one = alone((args[0][i], args[1][i]), lam0[i])
+        for got in (one, *(tuple(a[i] for a in b) for b in batched)):
+            np.testing.assert_allclose(float(got[0]), lam, rtol=1e-12)
+            np.testing.assert_allclose(float(got[1]), value, rtol=1e-12)
+            assert bool(got[2]) == ok and int(got[3]) == iterations
+    return expected
+
+
+@pytest.mark.parametrize("d, method", [(1, "ci"), (3, "moment")])
+def test_relaxed_slopes_do_not_depend_on_the_batch(d, method):
+    """Under vmap Newton halves in blocks of ``_HALVING_BLOCK`` runs gathered from its batch, so a
+    run's relaxed value and slopes must be bitwise the same in a block as in the whole batch, here
+    600 runs: large enough that XLA:CPU hands plain reductions and dots to other kernels."""
+    n_runs, block = 600, eise_module._HALVING_BLOCK
+    rng = np.random.default_rng(3)
+    gms = [random_gm(s, n=int(rng.integers(4, K + 1)), d=d)[0] for s in range(n_runs)]
+    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
+
+    def parts_of(gm):
+        return eise_module._relaxed_parts(gm, *_grid_for(gm), method, distinct_pairs=True)
+
+    parts = jax.jit(jax.vmap(parts_of))(batch)
+    lam = jnp.asarray(rng.uniform(1.0, 3.0, n_runs))
+    slopes = partial(eise_module._relaxed_value_and_slopes, method=method, regularizer="exp", ise_scale=0.5)
+    evaluate = jax.jit(jax.vmap(lambda p, l: slopes(l, (p, jnp.asarray(0.2), jnp.asarray(0.01)))))
+    whole = evaluate(parts, lam)
+    assert all(np.all(np.isfinite(a)) for a in whole)
+    for start in (0, 100):
+        rows = slice(start, start + block)
+        in_block = evaluate(jax.tree_util.tree_map(lambda a: a[rows], parts), lam[rows])
+        for a, b in zip(in_block, whole):
+            np.testing.assert_array_equal(a, b[rows])
+
+
 def test_newton_takes_the_derivatives_of_a_halved_candidate():
     """Where the full step overshoots, Newton halves it, and the next step starts from the halved
     candidate's derivatives (evaluated with its value): the iterates of a plain loop that evaluates
     the derivatives afresh wherever it moves, alone, under vmap and in the fixed ``scan``."""
-
-    def fun(lam, args):  # a narrow well: outside ±width the curvature is negative, so the step overshoots
-        centre, width = args
-        return -jnp.exp(-0.5 * ((lam - centre) / width) ** 2)
-
-    def numpy_fun(centre, width):
-        def f(lam):
-            u = (lam - centre) / width
-            e = np.exp(-0.5 * u**2)
-            return -e, e * u / width, e * (1 - u**2) / width**2
-
-        return f
-
     centres, widths = np.array([2.0, 2.0, 1.5, 2.2]), np.array([0.05, 0.08, 0.1, 0.07])
     lam0 = centres + np.array([0.09, -0.13, 0.16, 0.12])
-    expected = [_newton_loop_numpy(numpy_fun(c, w), l, 1.0, 3.0) for c, w, l in zip(centres, widths, lam0)]
+    expected = _check_newton_against_the_numpy_loop(centres, widths, lam0)
     assert sum(e[4] for e in expected) >= 2  # halvings happened
-    newton = lambda args, lam: eise_module._newton(fun, args, lam, 1.0, 3.0, 8, 1e-9, 0.2)  # noqa: E731
-    fixed = lambda args, lam: eise_module._newton_loop(  # noqa: E731
-        partial(eise_module._jvp_slopes, fun), 8, 4, False, args, lam, 1.0, 3.0, 1e-9, 0.2
-    )
-    args = (jnp.asarray(centres), jnp.asarray(widths))
-    batched = [jax.jit(jax.vmap(f))(args, jnp.asarray(lam0)) for f in (newton, fixed)]
-    for i, (lam, value, ok, iterations, _) in enumerate(expected):
-        alone = jax.jit(newton)((args[0][i], args[1][i]), lam0[i])
-        for got in (alone, *(tuple(a[i] for a in b) for b in batched)):
-            np.testing.assert_allclose(float(got[0]), lam, rtol=1e-12)
-            np.testing.assert_allclose(float(got[1]), value, rtol=1e-12)
-            assert bool(got[2]) == ok and int(got[3]) == iterations
+
+
+def test_newton_halves_only_the_runs_that_need_it_under_vmap():
+    """A batch larger than a halving block: the runs whose full step overshoots are gathered and
+    halved in blocks of ``_HALVING_BLOCK`` (more than one block here), the others keep their full
+    step; every run's iterates are the plain loop's, alone, under vmap and in the fixed ``scan``."""
+    rng = np.random.default_rng(1)
+    n = 3 * eise_module._HALVING_BLOCK + 5
+    centres, widths = rng.uniform(1.5, 2.5, n), rng.uniform(0.05, 0.1, n)
+    lam0 = centres + widths * rng.choice([-1.0, 1.0], n) * rng.uniform(0.5, 1.0, n)  # half overshoot at once
+    expected = _check_newton_against_the_numpy_loop(centres, widths, lam0)
+    halving = sum(e[4] > 0 for e in expected)
+    assert eise_module._HALVING_BLOCK < halving < n  # several blocks halve, some runs never do
 
 
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])

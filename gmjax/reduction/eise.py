@@ -47,9 +47,13 @@ then computed, and the grid's best is kept whenever Newton failed or did not do 
 The clustering at Newton's ``λ`` is a grid point's wherever the two judgment matrices are equal
 (the clustering depends on ``λ`` only through it); only the other runs run the overlap sweep
 (:func:`_cluster_unless_known`; under ``vmap`` gathered into blocks).
-Newton's loops exit early (under ``vmap``: once every run of the batch is done); a custom JVP
-differentiates the equivalent fixed-length ``scan``, so values and derivatives are those of
-``newton_steps`` masked steps.
+Newton's loops exit early (under ``vmap``: once every run of the batch is done, and only the few
+runs whose full step was rejected halve it, gathered into blocks); a custom JVP differentiates the
+equivalent fixed-length ``scan``, so values and derivatives are those of ``newton_steps`` masked
+steps. For that, a run's relaxed value and slopes must not depend on the batch they are evaluated
+in: ``_relaxed_value_and_slopes`` sums elementwise in a fixed order (XLA:CPU gives large reductions
+and dots to other kernels that sum in another order), except its three ``π``-weighted grid sums
+(``dot``s, which keep their order from 32 runs up; checked in ``tests/test_pcm.py``).
 """
 
 from __future__ import annotations
@@ -617,11 +621,48 @@ def _trace_of_product(a: Array, b: Array) -> Array:
     return functools.reduce(jnp.add, [_dot(a[..., i, :], b[..., :, i]) for i in range(a.shape[-1])])
 
 
+# Newton's evaluations of the relaxation run on a whole vmap batch, and its halvings on blocks of the
+# runs that need them (_halvings); XLA:CPU hands reductions and dots above some size to other kernels
+# (YNNPACK, Eigen), which sum in another order, so a run's value would depend on the batch it is
+# evaluated in. The evaluation therefore sums elementwise, left to right (unrolled at trace time),
+# except the three π-weighted grid sums, whose dots keep one order from 32 runs up (tests/test_pcm.py)
+# and are faster than unrolled sums.
+def _sum_last(x: Array) -> Array:
+    """``Σ_i x[..., i]``, left to right."""
+    return functools.reduce(jnp.add, [x[..., i] for i in range(x.shape[-1])])
+
+
+def _softmax(logits: Array) -> Array:
+    """:func:`jax.nn.softmax` over the last axis with its max and sum unrolled."""
+    top = functools.reduce(jnp.maximum, [logits[..., i] for i in range(logits.shape[-1])])
+    unnormalized = jnp.exp(logits - top[..., None])
+    return unnormalized / _sum_last(unnormalized)[..., None]
+
+
+def _spd_inv(P: Array) -> Array:
+    """:func:`gaussian.spd_inv` with ``L^{-T} L^{-1}`` unrolled for ``3 <= d <= 6``."""
+    d = P.shape[-1]
+    if d <= 2 or d > gaussian._UNROLL_MAX_DIM:
+        return gaussian.spd_inv(P)
+    lower_inv = gaussian._lower_inverse(gaussian._cholesky(P))
+    return _mm(jnp.swapaxes(lower_inv, -1, -2), lower_inv)
+
+
+def _spd_logpdf(x: Array, m: Array, P: Array) -> Array:
+    """:func:`gaussian.spd_logpdf` with the log-determinant's sum unrolled for ``3 <= d <= 6``."""
+    d = P.shape[-1]
+    if d <= 2 or d > gaussian._UNROLL_MAX_DIM:
+        return gaussian.spd_logpdf(x, m, P)
+    L = gaussian._cholesky(P)
+    logdet = 2.0 * functools.reduce(jnp.add, [jnp.log(L[..., i, i]) for i in range(d)])
+    return -0.5 * (d * gaussian._LOG_2PI + logdet + gaussian.spd_inv_quad(x - m, P))
+
+
 def _softmax_slopes(pi: Array, a: Array) -> tuple[Array, Array]:
     """``π'`` and ``π''`` of ``π = softmax(l)`` ``(G,)`` with ``l' = a`` and ``l''`` the same for every
     entry (the Gaussian kernel's ``-1/τ²``): ``π' = π (a - ā)``, ``π'' = π ((a - ā)² - Var_π a)``."""
-    centred = a - pi @ a
-    return pi * centred, pi * (centred**2 - pi @ centred**2)
+    centred = a - _dot(pi, a)
+    return pi * centred, pi * (centred**2 - _dot(pi, centred**2))
 
 
 def _quotient_slopes(num: Array, den: Array) -> Array:
@@ -673,7 +714,7 @@ def _relaxed_value_and_slopes(
     dtype = gm.means.dtype
     eye = jnp.eye(gm.dim, dtype=dtype)
     t = (lam - parts.grid) / temperature
-    pi = jax.nn.softmax(-0.5 * t**2)
+    pi = _softmax(-0.5 * t**2)
     pis = jnp.stack([pi, *_softmax_slopes(pi, -t / temperature)])  # (3, G): π, π', π''
     W = pis @ parts.weights  # (3, C)
     live = W[0] > 0
@@ -682,7 +723,7 @@ def _relaxed_value_and_slopes(
     second = _quotient_slopes(jnp.einsum("ng,gcij->ncij", pis, parts.second), W)  # (3, C, d, d)
     if method == "ci":  # P̄ = Q^{-1}: P̄' = -P̄ Q' P̄, P̄'' = -P̄ Q'' P̄ - 2 P̄' Q' P̄; ū = P̄ F
         prec = jnp.where(live[:, None, None], second[0], eye)
-        cov = gaussian.spd_inv(prec)
+        cov = _spd_inv(prec)
         cov1 = -_mm(cov, _mm(second[1], cov))
         cov2 = -_mm(cov, _mm(second[2], cov)) - 2.0 * _mm(cov1, _mm(second[1], cov))
         mu = jnp.stack(
@@ -704,7 +745,7 @@ def _relaxed_value_and_slopes(
             - outer(first[0], first[2])
         )
         cov = jnp.where(live[:, None, None], cov, eye)
-        prec = gaussian.spd_inv(cov)
+        prec = _spd_inv(cov)
     mu = jnp.where(live[None, :, None], mu, 0.0)
     cov1 = jnp.where(live[:, None, None], cov1, 0.0)
     cov2 = jnp.where(live[:, None, None], cov2, 0.0)
@@ -712,14 +753,14 @@ def _relaxed_value_and_slopes(
     W = jnp.where(live, W, 0.0)
 
     # J_rr = Σ_c W_c² N(0; 0, 2 P̄_c): ρ = log N, ρ' = -½ tr(P̄^{-1} P̄'), ρ'' as ℓ'' (S = 2 P̄, r = 0)
-    e_rr = jnp.exp(gaussian.spd_logpdf(mu[0], mu[0], 2.0 * covs[0]))
+    e_rr = jnp.exp(_spd_logpdf(mu[0], mu[0], 2.0 * covs[0]))
     pc1 = _mm(prec, covs[1])
     rho1 = -0.5 * _trace_of_product(prec, covs[1])
     rho2 = -0.5 * _trace_of_product(prec, covs[2]) + 0.5 * _trace_of_product(pc1, pc1)
     W0, W1, W2 = W
-    j_rr = jnp.sum(e_rr * W0**2)
-    j_rr1 = jnp.sum(e_rr * (2.0 * W0 * W1 + W0**2 * rho1))
-    j_rr2 = jnp.sum(e_rr * (2.0 * W1**2 + 2.0 * W0 * W2 + 4.0 * W0 * W1 * rho1 + W0**2 * (rho1**2 + rho2)))
+    j_rr = _sum_last(e_rr * W0**2)
+    j_rr1 = _sum_last(e_rr * (2.0 * W0 * W1 + W0**2 * rho1))
+    j_rr2 = _sum_last(e_rr * (2.0 * W1**2 + 2.0 * W0 * W2 + 4.0 * W0 * W1 * rho1 + W0**2 * (rho1**2 + rho2)))
 
     # J_hr = Σ_k π_k Σ_m w_m W_c N(u_m; ū_c, P_m + P̄_c), c = the cluster grid point k puts m in
     own = jnp.maximum(parts.labels, 0)  # (G, K)
@@ -728,7 +769,7 @@ def _relaxed_value_and_slopes(
     def pair_terms(u, P, s):  # ℓ, ℓ', ℓ'' of component (u, P) against cluster s = (ū, P̄ and slopes)
         (m0, m1, m2), (S0, S1, S2) = s
         S = P + S0
-        Si = gaussian.spd_inv(S)
+        Si = _spd_inv(S)
         v = _mv(Si, u - m0)
         Si_S1 = _mm(Si, S1)
         S1_v = _mv(S1, v)
@@ -741,27 +782,28 @@ def _relaxed_value_and_slopes(
             + _dot(v, m2)
             + 0.5 * _dot(v, _mv(S2, v))
         )
-        return gaussian.spd_logpdf(u, m0, S), ell1, ell2
+        return _spd_logpdf(u, m0, S), ell1, ell2
 
     log_cross, ell1, ell2 = _over_pairs(pair_terms, parts, (tuple(mu), tuple(covs)))  # (G, K) each
     w = jnp.where(gm.mask, gm.weights, 0.0).astype(dtype)
     e = jnp.exp(jnp.where(valid, log_cross, -jnp.inf)) * w[None, :]
     Wo0, Wo1, Wo2 = W0[own], W1[own], W2[own]
-    h0 = jnp.sum(e * Wo0, axis=1)
-    h1 = jnp.sum(jnp.where(valid, e * (Wo1 + Wo0 * ell1), 0.0), axis=1)
-    h2 = jnp.sum(jnp.where(valid, e * (Wo2 + 2.0 * Wo1 * ell1 + Wo0 * (ell1**2 + ell2)), 0.0), axis=1)
+    h0 = _sum_last(e * Wo0)
+    h1 = _sum_last(jnp.where(valid, e * (Wo1 + Wo0 * ell1), 0.0))
+    h2 = _sum_last(jnp.where(valid, e * (Wo2 + 2.0 * Wo1 * ell1 + Wo0 * (ell1**2 + ell2)), 0.0))
     pi0, pi1, pi2 = pis
-    j_hr = pi0 @ h0
-    j_hr1 = pi1 @ h0 + pi0 @ h1
-    j_hr2 = pi2 @ h0 + 2.0 * pi1 @ h1 + pi0 @ h2
+    j_hr = _dot(pi0, h0)
+    j_hr1 = _dot(pi1, h0) + _dot(pi0, h1)
+    j_hr2 = _dot(pi2, h0) + 2.0 * _dot(pi1, h1) + _dot(pi0, h2)
 
     # J_hh = πᵀ H π (H symmetric)
-    j_hh = pi0 @ parts.hh @ pi0
-    j_hh1 = 2.0 * pi1 @ parts.hh @ pi0
-    j_hh2 = 2.0 * pi2 @ parts.hh @ pi0 + 2.0 * pi1 @ parts.hh @ pi1
+    hh_pi0, hh_pi1 = _dot(parts.hh, pi0), _dot(parts.hh, pi1)  # (G,): H π, H π'
+    j_hh = _dot(pi0, hh_pi0)
+    j_hh1 = 2.0 * _dot(pi1, hh_pi0)
+    j_hh2 = 2.0 * _dot(pi2, hh_pi0) + 2.0 * _dot(pi1, hh_pi1)
 
     n_ref = jnp.sum(gm.mask.astype(jnp.int32))
-    n_soft = pis @ parts.counts
+    n_soft = _dot(pis, parts.counts)
     p1, p2 = _penalty_slopes(n_soft, n_ref, alpha, regularizer)
     f = ise_scale * (j_hh - 2.0 * j_hr + j_rr) + penalty(n_soft[0], n_ref, alpha, regularizer)
     g = ise_scale * (j_hh1 - 2.0 * j_hr1 + j_rr1) + p1
@@ -842,6 +884,69 @@ def _jvp_slopes(fun, lam, args):
     return f, g, h
 
 
+def _try_scale(slopes, k, acc, lam, raw, f, args, lo, hi):
+    """Backtracking's ``k``-th candidate ``λ - raw / 2^k`` (clipped to ``[lo, hi]``), evaluated with its
+    slopes (the next step starts from them); ``acc = (found, (λ, f, f', f''))`` takes it if nothing was
+    found yet and it does not increase ``f``."""
+    found, best = acc
+    cand = jnp.clip(lam - raw * jnp.asarray(0.5, raw.dtype) ** k, lo, hi)  # (a weak 0.5 ** int32 is float64)
+    at_cand = (cand, *slopes(cand, args))
+    better = (~found) & jnp.isfinite(at_cand[1]) & (at_cand[1] <= f)
+    return found | better, tuple(jnp.where(better, a, b) for a, b in zip(at_cand, best))
+
+
+_HALVING_BLOCK = 32  # runs per block when a batch halves only the runs whose full step was rejected
+
+
+def _halvings(slopes, n_backtrack: int, k, acc, active, lam, raw, f, args, lo, hi):
+    """Backtracking from candidate ``k`` on (:func:`_try_scale`) until one is taken, ``k > n_backtrack``
+    or the run is not ``active``; returns ``acc``.
+
+    Alone, a ``while_loop``. Under ``vmap`` the loop would run as long as the batch's slowest run, and
+    each pass evaluates the relaxation for the whole batch; a full step is rejected in few runs (on
+    the seed 000 jump system at most 0.3 % of the active runs at a step), so the batch rule gathers
+    the runs still halving and runs the loop on them alone, in blocks of :data:`_HALVING_BLOCK`
+    (usually one block, or none). Each run's arithmetic is the same.
+    """
+
+    def alone(k, acc, active, lam, raw, f, args, lo, hi):
+        def halve(state):
+            k, acc = state
+            return k + 1, _try_scale(slopes, k, acc, lam, raw, f, args, lo, hi)
+
+        keep_on = lambda s: (s[0] <= n_backtrack) & ~s[1][0] & active  # noqa: E731
+        return jax.lax.while_loop(keep_on, halve, (k, acc))[1]
+
+    batched = jax.custom_batching.custom_vmap(alone)
+
+    @batched.def_vmap
+    def _only_those_halving(axis_size, in_batched, *operands):
+        spread = lambda a, b: a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a))  # noqa: E731
+        operands = jax.tree_util.tree_map(spread, list(operands), list(in_batched))
+        k, acc, active = operands[:3]
+        out_batched = jax.tree_util.tree_map(lambda _: True, acc)
+        if axis_size <= _HALVING_BLOCK:
+            return jax.vmap(alone)(*operands), out_batched
+        block = _HALVING_BLOCK
+        n_blocks = -(-axis_size // block)
+        need = (k <= n_backtrack) & ~acc[0] & active
+        order = jnp.argsort(~need, stable=True)  # the runs still halving first
+        order = jnp.pad(order, (0, n_blocks * block - axis_size), constant_values=axis_size)
+
+        def one_block(state):
+            j, acc = state
+            rows = jax.lax.dynamic_slice(order, (j * block,), (block,))
+            take = lambda a: jnp.take(a, rows, axis=0, mode="clip")  # noqa: E731
+            new = jax.vmap(alone)(*jax.tree_util.tree_map(take, [k, acc, *operands[2:]]))
+            return j + 1, jax.tree_util.tree_map(lambda a, b: a.at[rows].set(b, mode="drop"), acc, new)
+
+        n_need = jnp.sum(need.astype(jnp.int32))
+        _, acc = jax.lax.while_loop(lambda s: s[0] * block < n_need, one_block, (0, acc))
+        return acc, out_batched
+
+    return batched(k, acc, active, lam, raw, f, args, lo, hi)
+
+
 def _newton_step(slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit: bool, carry):
     """One damped Newton step of :func:`_newton` on ``carry = (λ, f, f', f'', done, converged,
     iterations)``, the slopes those at ``λ``; a run already ``done`` keeps its carry."""
@@ -853,26 +958,18 @@ def _newton_step(slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit
     # flat to rounding (every grid point near λ clusters alike): g is noise, so stay (and converge)
     flat = jnp.abs(g) * radius <= _FLAT_EPS * jnp.finfo(f.dtype).eps * jnp.abs(f)
     raw = jnp.where(finite & ~flat, jnp.clip(raw, -radius, radius), 0.0)
-
-    def try_scale(k, acc):
-        found, best = acc
-        cand = jnp.clip(
-            lam - raw * jnp.asarray(0.5, raw.dtype) ** k, lo, hi
-        )  # (a weak 0.5 ** int32 is float64)
-        at_cand = (cand, *slopes(cand, args))  # the slopes too: the next step starts from them
-        better = (~found) & jnp.isfinite(at_cand[1]) & (at_cand[1] <= f)
-        return found | better, tuple(jnp.where(better, a, b) for a, b in zip(at_cand, best))
+    try_scale = partial(_try_scale, slopes, lam=lam, raw=raw, f=f, args=args, lo=lo, hi=hi)
 
     # a zero step (flat) is taken at once: f re-evaluated at λ in another loop may differ in its last bit
     init = (finite & (raw == 0), (lam, f, g, h))
-    if early_exit:  # stop halving once a candidate decreases f (under vmap: once every run has one)
-        _, (found, new) = jax.lax.while_loop(
-            lambda s: (s[0] <= n_backtrack) & ~s[1][0] & active,
-            lambda s: (s[0] + 1, try_scale(s[0], s[1])),
-            (jnp.zeros((), jnp.int32), init),
-        )
-    else:
-        found, new = jax.lax.fori_loop(0, n_backtrack + 1, try_scale, init)
+    # the full step for every run still stepping, then the halvings where it was rejected
+    take_full = active & ~init[0]
+    acc = jax.tree_util.tree_map(partial(jnp.where, take_full), try_scale(0, init), init)
+    if early_exit:  # only while some run still halves; under vmap, only those runs (_halvings)
+        k = jnp.where(take_full, 1, 0).astype(jnp.int32)
+        found, new = _halvings(slopes, n_backtrack, k, acc, active, lam, raw, f, args, lo, hi)
+    else:  # every halving for every run (a run that found a candidate keeps it)
+        found, new = jax.lax.fori_loop(1, n_backtrack + 1, try_scale, acc)
     found = found & finite
     lam_new, f_new = new[:2]
     small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f - f_new) <= tol * jnp.abs(f))
@@ -940,8 +1037,9 @@ def _newton(
     function (nearly always; the halvings are rare), instead of the derivatives at ``λ`` and the
     value at the candidate apart.
 
-    The loops exit early: the step loop once the run is done, the halving loop once a candidate
-    decreases ``fun`` (under ``vmap``: once every run in the batch has). ``while_loop`` has no
+    The loops exit early: the step loop once the run is done (under ``vmap``: once every run in
+    the batch is), the halvings once a candidate decreases ``fun``; under ``vmap`` only the runs
+    whose full step was rejected halve, gathered into blocks (:func:`_halvings`). ``while_loop`` has no
     reverse mode, so a custom JVP differentiates the equivalent fixed-length ``scan`` instead: the
     values are identical and the derivatives are those of the ``scan`` (``jax.grad`` works).
     ``fun`` must take everything it differentiates through ``args`` (a pytree), not a closure.
