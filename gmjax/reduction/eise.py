@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import functools
 from functools import partial
-from typing import NamedTuple, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -811,6 +811,14 @@ def _relaxed_value_and_slopes(
     return f, g, h
 
 
+# Newton's evaluation, traced once per mixture shape: the search's loops and batch rules trace it
+# again and again (a while_loop under vmap traces its body until the batching settles), which a jit
+# answers from its cache; the compiled program is the same (XLA inlines the call)
+_relaxed_slopes_jit = jax.jit(
+    _relaxed_value_and_slopes, static_argnames=("method", "regularizer", "ise_scale")
+)
+
+
 def relaxed_eise(
     lam: ArrayLike,
     gm: GaussianMixture,
@@ -949,48 +957,72 @@ def _halvings(slopes, n_backtrack: int, k, acc, active, lam, raw, f, args, lo, h
 
 def _newton_step(slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit: bool, carry):
     """One damped Newton step of :func:`_newton` on ``carry = (λ, f, f', f'', done, converged,
-    iterations)``, the slopes those at ``λ``; a run already ``done`` keeps its carry."""
-    lam, f, g, h, done, ok, it = carry
-    active = ~done
+    iterations, started)``, the slopes those at ``λ``; a run already ``done`` keeps its carry.
+
+    A run not ``started`` yet evaluates its start ``λ`` instead (the first pass of the loop): the
+    start and the full steps then share one evaluation in the compiled program (each is a copy of
+    the whole relaxed evaluation), and the start counts as no step."""
+    lam, f, g, h, done, ok, it, started = carry
+    starting = ~started
+    active = ~done & started
     finite = jnp.isfinite(g) & jnp.isfinite(h)
     convex = finite & (h > 0)
     raw = jnp.where(convex, g / jnp.where(convex, h, 1.0), jnp.sign(g) * radius)
     # flat to rounding (every grid point near λ clusters alike): g is noise, so stay (and converge)
     flat = jnp.abs(g) * radius <= _FLAT_EPS * jnp.finfo(f.dtype).eps * jnp.abs(f)
-    raw = jnp.where(finite & ~flat, jnp.clip(raw, -radius, radius), 0.0)
-    try_scale = partial(_try_scale, slopes, lam=lam, raw=raw, f=f, args=args, lo=lo, hi=hi)
+    raw = jnp.where(finite & ~flat & started, jnp.clip(raw, -radius, radius), 0.0)
 
     # a zero step (flat) is taken at once: f re-evaluated at λ in another loop may differ in its last bit
-    init = (finite & (raw == 0), (lam, f, g, h))
-    # the full step for every run still stepping, then the halvings where it was rejected
-    take_full = active & ~init[0]
-    acc = jax.tree_util.tree_map(partial(jnp.where, take_full), try_scale(0, init), init)
+    init = (active & finite & (raw == 0), (lam, f, g, h))
+    # the full step for every run still stepping (or the start), then the halvings where it was rejected
+    take_full = (active & ~init[0]) | starting
+    cand = jnp.where(starting, lam, jnp.clip(lam - raw, lo, hi))  # (= _try_scale's k = 0)
+    at_cand = (cand, *slopes(cand, args))
+    better = starting | (jnp.isfinite(at_cand[1]) & (at_cand[1] <= f))
+    acc = (
+        init[0] | (take_full & better),
+        tuple(jnp.where(take_full & better, a, b) for a, b in zip(at_cand, init[1])),
+    )
+    k = jnp.where(take_full & started, 1, n_backtrack + 1).astype(jnp.int32)
     if early_exit:  # only while some run still halves; under vmap, only those runs (_halvings)
-        k = jnp.where(take_full, 1, 0).astype(jnp.int32)
         found, new = _halvings(slopes, n_backtrack, k, acc, active, lam, raw, f, args, lo, hi)
-    else:  # every halving for every run (a run that found a candidate keeps it)
-        found, new = jax.lax.fori_loop(1, n_backtrack + 1, try_scale, acc)
-    found = found & finite
+    else:  # every halving for every run that stepped (a run that found a candidate keeps it)
+        try_scale = partial(_try_scale, slopes, lam=lam, raw=raw, f=f, args=args, lo=lo, hi=hi)
+        found, new = jax.lax.fori_loop(1, n_backtrack + 1, try_scale, (acc[0] | starting, acc[1]))
+    found = found & (finite | starting)
     lam_new, f_new = new[:2]
     small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f - f_new) <= tol * jnp.abs(f))
     converged = found & small
     failed = ~found
-    moved = active & found
+    moved = (active & found) | starting
     lam_next, f_next, g_next, h_next = (jnp.where(moved, a, b) for a, b in zip(new, (lam, f, g, h)))
     done_next = done | (active & (converged | failed))
     ok_next = jnp.where(active, converged, ok)
-    return lam_next, f_next, g_next, h_next, done_next, ok_next, it + active.astype(jnp.int32)
+    return (
+        lam_next,
+        f_next,
+        g_next,
+        h_next,
+        done_next,
+        ok_next,
+        it + active.astype(jnp.int32),
+        started | starting,
+    )
 
 
 def _newton_loop(slopes, steps: int, n_backtrack: int, early_exit: bool, args, lam0, lo, hi, tol, radius):
     """:func:`_newton`'s iteration: a ``while_loop`` that stops once every run is done
-    (``early_exit``), or a ``scan`` of ``steps`` steps (reverse-differentiable); equal values."""
+    (``early_exit``), or a ``scan`` of ``steps + 1`` passes (reverse-differentiable); equal values.
+    The first pass evaluates the start (:func:`_newton_step`)."""
     step = partial(_newton_step, slopes, args, lo, hi, tol, radius, n_backtrack, early_exit)
-    init = (lam0, *slopes(lam0, args), jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+    lam0 = jnp.asarray(lam0)
+    unset = jnp.zeros_like(lam0)  # f, f', f'' until the first pass evaluates the start
+    false, zero = jnp.zeros((), bool), jnp.zeros((), jnp.int32)
+    init: Any = (lam0, unset, unset, unset, false, false, zero, false)  # the carry of _newton_step
     if early_exit:
-        lam, f, *_, ok, it = jax.lax.while_loop(lambda c: ~c[4] & (c[6] < steps), step, init)
+        lam, f, *_, ok, it, _ = jax.lax.while_loop(lambda c: ~c[7] | (~c[4] & (c[6] < steps)), step, init)
     else:
-        (lam, f, *_, ok, it), _ = jax.lax.scan(lambda c, _: (step(c), None), init, None, length=steps)
+        (lam, f, *_, ok, it, _), _ = jax.lax.scan(lambda c, _: (step(c), None), init, None, length=steps + 1)
     return lam, f, ok, it
 
 
@@ -1035,7 +1067,8 @@ def _newton(
     Every candidate is evaluated with its derivatives (``slopes``), so the step after an accepted
     candidate starts from them: one evaluation per step where the full step decreases the
     function (nearly always; the halvings are rare), instead of the derivatives at ``λ`` and the
-    value at the candidate apart.
+    value at the candidate apart. The start is evaluated by the loop's first pass, so the compiled
+    program holds two copies of the evaluation (the step loop's and the halving blocks'), not three.
 
     The loops exit early: the step loop once the run is done (under ``vmap``: once every run in
     the batch is), the halvings once a candidate decreases ``fun``; under ``vmap`` only the runs
@@ -1226,7 +1259,7 @@ def search_confidence(
     )
 
     relaxed = partial(_relaxed_at, method=method, regularizer=regularizer, ise_scale=ise_scale)
-    slopes = partial(_relaxed_value_and_slopes, method=method, regularizer=regularizer, ise_scale=ise_scale)
+    slopes = partial(_relaxed_slopes_jit, method=method, regularizer=regularizer, ise_scale=ise_scale)
     tau = jnp.asarray(temperature, dtype)
     lam_newton, relaxed_newton, newton_ok, iterations = _newton(
         relaxed,
