@@ -195,6 +195,7 @@ def test_hard_eise_matches_reference(name, seed000):
 # --------------------------------------------------------------------------- relaxation and Newton
 
 
+@partial(jax.jit, static_argnames="G")  # compiled once per shape, shared by the tests
 def _grid_for(gm, G=11, lo=1.0, hi=3.0):
     grid = jnp.linspace(lo, hi, G)
     labels = jax.vmap(lambda lam: gauss_cluster(gm, lam).labels)(grid)
@@ -212,8 +213,16 @@ def _dense_relaxed_eise(lam, gm, grid, labels, counts, temperature, alpha, metho
     return eise(gm, A, merged, n_soft, n_ref, alpha=alpha, clip=False)
 
 
-@pytest.mark.parametrize("d", [1, 2, 3, pytest.param(4, marks=pytest.mark.slow)])
-@pytest.mark.parametrize("method", ["ci", "moment"])
+@pytest.mark.parametrize(
+    ("d", "method"),
+    [
+        (d, method)
+        if (d, method) not in {(3, "ci"), (4, "ci"), (4, "moment")}
+        else pytest.param(d, method, marks=pytest.mark.slow)  # compiling; d = 2 has the same code paths
+        for d in (1, 2, 3, 4)
+        for method in ("ci", "moment")
+    ],
+)
 def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
     """``relaxed_eise`` works from per-grid-point sums (eise._RelaxedParts); value and derivatives
     equal the soft clusters merged and integrated directly, padding included."""
@@ -240,8 +249,15 @@ def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
     np.testing.assert_allclose(h_fast, h_dense, rtol=1e-9, atol=scale)
 
 
-@pytest.mark.parametrize("d", [1, 3])
-@pytest.mark.parametrize(("method", "regularizer"), [("ci", "exp"), ("moment", "log10")])
+@pytest.mark.parametrize(
+    ("d", "method", "regularizer"),
+    [  # each d and each method by default; the other two (20-35 s of compiling each) are slow
+        (3, "ci", "exp"),
+        (1, "moment", "log10"),
+        pytest.param(1, "ci", "exp", marks=pytest.mark.slow),
+        pytest.param(3, "moment", "log10", marks=pytest.mark.slow),
+    ],
+)
 def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
     """Newton's derivatives of the relaxed EISE, derived by hand
     (``eise._relaxed_value_and_slopes``), equal forward-over-forward ``jvp`` of its value, and the
@@ -331,6 +347,7 @@ def test_newton_no_worse_than_grid_on_static_cases(name):
     np.testing.assert_array_equal(labels, res.labels)
 
 
+@jax.jit
 def _newton_problem(gm, alpha=0.01):
     """Newton's inputs as :func:`search_confidence` builds them, from the grid's best ``λ``."""
     grid, labels, counts = _grid_for(gm)
@@ -339,10 +356,9 @@ def _newton_problem(gm, alpha=0.01):
     return (parts, jnp.asarray(0.2), jnp.asarray(alpha)), lam0
 
 
-def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
-    """Newton stops once every run is done (``while_loop``s) and returns exactly what the fixed
-    8-step ``scan`` returns, alone and under vmap; its derivatives (a custom JVP through that scan)
-    equal the scan's, in forward and reverse mode."""
+def _newton_early_and_fixed():
+    """Nine Newton problems stacked (6 random mixtures, the static cases) and Newton on them two
+    ways: ``early`` (``while_loop``s, the custom JVP) and ``fixed`` (the 8-step ``scan``)."""
     options = dict(method="ci", regularizer="exp", ise_scale=0.5)
     fun = partial(eise_module._relaxed_at, **options)
     slopes = partial(eise_module._relaxed_value_and_slopes, **options)  # as search_confidence takes them
@@ -359,6 +375,32 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     def fixed(args, lam0):
         return eise_module._newton_loop(slopes, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
 
+    return args, lam0, early, fixed
+
+
+def _lam_of(f, temperature, alpha, parts, lam0):
+    return f((parts, temperature, alpha), lam0)[0]
+
+
+def _batched_derivative(derivative, args, lam0):
+    """``derivative`` of ``λ(τ, α)`` at ``τ = 0.2, α = 0.01``, per problem."""
+    return jax.jit(jax.vmap(derivative, in_axes=(None, None, 0, 0)))(
+        jnp.asarray(0.2), jnp.asarray(0.01), args[0], lam0
+    )
+
+
+def _assert_same_derivative(ours, scan):
+    # the same derivative; the custom JVP's instantiated zero tangents only reorder rounding
+    assert np.all(np.isfinite(scan))
+    np.testing.assert_allclose(ours, scan, rtol=1e-10, atol=1e-14 * float(np.max(np.abs(scan))))
+
+
+def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
+    """Newton stops once every run is done (``while_loop``s) and returns exactly what the fixed
+    8-step ``scan`` returns, alone and under vmap; its forward-mode derivative (a custom JVP through
+    that scan) equals the scan's. Reverse mode: the slow test below, and every ``jax.grad`` of a
+    search (``test_search_in_2d_jit_eager_vmap_float32_and_gradient``, ``tests/test_tune.py``)."""
+    args, lam0, early, fixed = _newton_early_and_fixed()
     batched_early, batched_fixed = jax.jit(jax.vmap(early))(args, lam0), jax.jit(jax.vmap(fixed))(args, lam0)
     for a, b in zip(batched_early, batched_fixed):
         np.testing.assert_array_equal(a, b)
@@ -372,21 +414,22 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
         jax.make_jaxpr(early)(one, lam0[0])
     )
 
-    def lam_of(f, temperature, alpha, parts, lam0):
-        return f((parts, temperature, alpha), lam0)[0]
+    def forward(f):  # d λ / d τ
+        return lambda t, a, p, l: jax.jvp(lambda t_: _lam_of(f, t_, a, p, l), (t,), (jnp.ones_like(t),))[1]
 
-    def derivatives(f):  # d λ / d (τ, α) per problem, in reverse and in forward mode
-        reverse = jax.grad(partial(lam_of, f), argnums=(0, 1))
-        forward = lambda t, a, p, l: jax.jvp(lambda t_: lam_of(f, t_, a, p, l), (t,), (jnp.ones_like(t),))[1]  # noqa: E731
-        both = lambda t, a, p, l: (*reverse(t, a, p, l), forward(t, a, p, l))  # noqa: E731
-        return jax.jit(jax.vmap(both, in_axes=(None, None, 0, 0)))(
-            jnp.asarray(0.2), jnp.asarray(0.01), args[0], lam0
-        )
+    _assert_same_derivative(*(_batched_derivative(forward(f), args, lam0) for f in (early, fixed)))
 
-    # the same derivative; the custom JVP's instantiated zero tangents only reorder rounding
-    for d_early, d_fixed in zip(derivatives(early), derivatives(fixed)):
-        assert np.all(np.isfinite(d_fixed))
-        np.testing.assert_allclose(d_early, d_fixed, rtol=1e-10, atol=1e-14 * float(np.max(np.abs(d_fixed))))
+
+@pytest.mark.slow  # two reverse-mode programs through the scan: about a minute of compiling
+def test_newton_early_exit_differentiates_like_the_fixed_scan_in_reverse_mode():
+    """``jax.grad`` through Newton's early exit (the transpose of its custom JVP) equals the fixed
+    ``scan``'s reverse-mode derivatives in ``τ`` and ``α``."""
+    args, lam0, early, fixed = _newton_early_and_fixed()
+    reverse = [
+        _batched_derivative(jax.grad(partial(_lam_of, f), argnums=(0, 1)), args, lam0) for f in (early, fixed)
+    ]
+    for d_early, d_fixed in zip(*reverse):
+        _assert_same_derivative(d_early, d_fixed)
 
 
 def test_distinct_pairs_match_a_loop_alone_and_under_vmap():
@@ -432,7 +475,7 @@ def _relaxed_problems_2d(method):
     return problems
 
 
-@pytest.mark.parametrize("method", ["ci", "moment"])
+@pytest.mark.parametrize("method", ["ci", pytest.param("moment", marks=pytest.mark.slow)])  # 40 s compiling
 def test_relaxation_over_distinct_pairs_is_the_full_one(method):
     """For d >= 2 the search evaluates ``J_hr`` once per distinct pair, in chunks: value and slopes
     equal those over all ``G K`` pairs, alone (runs that need one chunk and runs that need four)
@@ -479,20 +522,30 @@ def test_relaxation_over_distinct_pairs_is_the_full_one(method):
             )
 
 
-def test_search_in_2d_jit_eager_vmap_float32_and_gradient():
-    """The 2-D search (distinct pairs): jit == eager, vmap == loop, float32 near float64, and
-    reverse-mode derivatives of its ``λ`` through Newton (the custom JVP's scan runs over all
-    pairs) equal finite differences."""
-    gms = [random_gm(s, n=10, d=2)[0] for s in range(4)]
+def _search_2d(gm, alpha=0.01):
     options = dict(lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6)
+    return search_confidence(gm, alpha=alpha, **options)
 
-    def search(gm, alpha=0.01):
-        return search_confidence(gm, alpha=alpha, **options)
 
-    eager = [search(g) for g in gms]
+def _search_2d_lam_slope(derivative):
+    """``d λ_newton / d α`` of a 2-D search by ``derivative`` (forward or reverse mode) and by a
+    central finite difference."""
+    gm = random_gm(1, n=10, d=2)[0]
+    lam_newton = jax.jit(lambda a: _search_2d(gm, a).lam_newton)
+    slope = jax.jit(derivative(lambda a: _search_2d(gm, a).lam_newton))(0.01)
+    h = 1e-5
+    return slope, (lam_newton(0.01 + h) - lam_newton(0.01 - h)) / (2 * h)
+
+
+def test_search_in_2d_jit_eager_vmap_float32_and_derivative():
+    """The 2-D search (distinct pairs): jit == eager, vmap == loop, float32 near float64, and the
+    forward-mode derivative of its ``λ`` through Newton (the custom JVP's scan runs over all pairs)
+    equals finite differences; reverse mode: the slow test below."""
+    gms = [random_gm(s, n=10, d=2)[0] for s in range(4)]
+    eager = [_search_2d(g) for g in gms]
     assert any(int(r.iterations) > 1 for r in eager)
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
-    batched = jax.jit(jax.vmap(search))(stacked)
+    batched = jax.jit(jax.vmap(_search_2d))(stacked)
     for k, r in enumerate(eager):
         for a, b in zip(jax.tree_util.tree_leaves(r), jax.tree_util.tree_leaves(batched)):
             if jnp.issubdtype(a.dtype, jnp.floating):  # batched arithmetic rounds differently
@@ -500,15 +553,21 @@ def test_search_in_2d_jit_eager_vmap_float32_and_gradient():
             else:
                 np.testing.assert_array_equal(a, b[k])
     g32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if a.dtype == jnp.float64 else a, gms[0])
-    r32 = search(g32)
+    r32 = _search_2d(g32)
     assert r32.lam_newton.dtype == jnp.float32
     np.testing.assert_allclose(r32.lam_newton, eager[0].lam_newton, rtol=1e-4)
     np.testing.assert_array_equal(r32.labels, eager[0].labels)
 
-    lam_newton = jax.jit(lambda a: search(gms[1], a).lam_newton)
-    slope = jax.jit(jax.grad(lambda a: search(gms[1], a).lam_newton))(0.01)
-    h = 1e-5
-    fd = (lam_newton(0.01 + h) - lam_newton(0.01 - h)) / (2 * h)
+    forward = lambda f: lambda a: jax.jvp(f, (a,), (jnp.ones_like(a),))[1]  # noqa: E731
+    slope, fd = _search_2d_lam_slope(forward)
+    assert np.isfinite(slope) and slope != 0.0
+    np.testing.assert_allclose(slope, fd, rtol=1e-4)
+
+
+@pytest.mark.slow  # reverse mode through the 2-D search: half a minute of compiling
+def test_search_in_2d_gradient_matches_finite_differences():
+    """``jax.grad`` of the 2-D search's ``λ`` (the transpose of the custom JVP, pairs dropped)."""
+    slope, fd = _search_2d_lam_slope(jax.grad)
     assert np.isfinite(slope) and slope != 0.0
     np.testing.assert_allclose(slope, fd, rtol=1e-4)
 
