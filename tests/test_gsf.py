@@ -276,17 +276,23 @@ def test_ise_diagnostic_is_opt_in_and_equals_the_closed_form_ise():
     tracked = build_gsf(sc.model, "ekf", red, capacity=6, track_ise=True)
     s0 = tracked.init(tracked.params)
     inp = StepInputs(t=ts[0])
-    s1 = tracked.predict(tracked.params, s0, inp)
-    state, info = tracked.update(tracked.params, s1, zs[0], inp)
-    # the same step by hand: the updated mixture and its reduction, then the closed-form ISE
-    local = local_filter_for(sc.model, "ekf")
-    pred = gs_predict(local, s0.mixture, inp, sc.model.process_noise)
-    up = gs_update(local, pred, zs[0], inp, sc.model.measurement_noise).mixture
-    np.testing.assert_allclose(info.extra["ise"], metrics.ise(up, state.mixture), rtol=1e-12)
+
+    def one_step(filt, s0):  # compiled (eager, the step's ops would compile one by one)
+        step = lambda s: filt.update(filt.params, filt.predict(filt.params, s, inp), zs[0], inp)  # noqa: E731
+        return jax.jit(step)(s0)
+
+    state, info = one_step(tracked, s0)
+
+    @jax.jit  # the same step by hand: the updated mixture and its reduction, then the closed-form ISE
+    def ise_by_hand(s0, reduced):
+        local = local_filter_for(sc.model, "ekf")
+        pred = gs_predict(local, s0.mixture, inp, sc.model.process_noise)
+        up = gs_update(local, pred, zs[0], inp, sc.model.measurement_noise).mixture
+        return metrics.ise(up, reduced)
+
+    np.testing.assert_allclose(info.extra["ise"], ise_by_hand(s0, state.mixture), rtol=1e-12)
     assert float(info.extra["ise"]) > 0
-    _, plain_info = plain.update(
-        plain.params, plain.predict(plain.params, plain.init(plain.params), inp), zs[0], inp
-    )
+    _, plain_info = one_step(plain, plain.init(plain.params))
     assert "ise" not in plain_info.extra
     np.testing.assert_array_equal(plain_info.mean, info.mean)
     r_plain = monte_carlo(plain, sc, 4, jax.random.key(0), progress=False)

@@ -96,15 +96,16 @@ def test_expected_cardinality_closed_forms(linear):
         initial=prev,
     )
     t = StepInputs(t=jnp.asarray(1))
-    state = f.predict(f.params, f.init(f.params, None), t)
+    state = jax.jit(f.predict)(f.params, f.init(f.params, None), t)
     np.testing.assert_allclose(jnp.sum(state.intensity.weights), p_s * 2.0 + 0.35, rtol=1e-14)
-    _, info = f.update(f.params, state, jnp.full((4, 2), jnp.nan), t)
+    update = jax.jit(f.update)  # compiled once for both measurement sets
+    _, info = update(f.params, state, jnp.full((4, 2), jnp.nan), t)
     expected = (1 - p_d) * (p_s * 2.0 + 0.35)
     np.testing.assert_allclose(info.extra["cardinality"], expected, rtol=1e-13)
     np.testing.assert_allclose(info.extra["cardinality_reduced"], expected, rtol=1e-13)  # nothing pruned
     # one measurement: every component's detection weight by hand (SciPy densities)
     z = np.array([3.0, -2.0])
-    _, info = f.update(f.params, state, jnp.asarray(np.vstack([z, np.full((3, 2), np.nan)])), t)
+    _, info = update(f.params, state, jnp.asarray(np.vstack([z, np.full((3, 2), np.nan)])), t)
     F, H, Q, R = _linear_parts(model)
     w_pred = np.asarray(state.intensity.weights)
     q = np.array(
@@ -297,7 +298,7 @@ def test_gradient_of_mean_gospa_wrt_thresholds_matches_finite_differences(linear
 
 def test_simulation_counts_and_overflow_flag(linear):
     keys = jax.random.split(jax.random.PRNGKey(0), 200)
-    s = jax.vmap(mt.simulate, (None, 0))(linear, keys)
+    s = jax.jit(jax.vmap(lambda k: mt.simulate(linear, k)))(keys)
     n_rows = np.sum(~np.isnan(np.asarray(s.zs)[..., 0]), -1)
     n_det = np.sum(np.asarray(s.detected), -1)
     n_valid = n_det + np.asarray(s.n_clutter)
@@ -315,7 +316,7 @@ def test_simulation_counts_and_overflow_flag(linear):
     assert np.nanmax(np.abs(pts)) < 1000 + 60  # detections can lie a few sigma outside
     # a scan capacity smaller than the set: flagged, detections kept first
     tight = linear._replace(max_measurements=3)
-    st = mt.simulate(tight, jax.random.PRNGKey(5))
+    st = jax.jit(lambda k: mt.simulate(tight, k))(jax.random.PRNGKey(5))
     n_valid = np.sum(np.asarray(st.detected), -1) + np.asarray(st.n_clutter)
     np.testing.assert_array_equal(np.asarray(st.overflow), n_valid > 3)
     assert np.any(st.overflow)
