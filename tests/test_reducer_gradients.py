@@ -102,7 +102,8 @@ RELAXED = {
     ),
 }
 CASES = {**{n: f for n, f in REDUCERS.items()}, **RELAXED}
-_SLOW = {"pcm", "gmrcm", "brute_force", "williams", "refined", "pcm_soft"}
+# (COWA: 18 s; its gradient also runs by default in tests/test_contract.py)
+_SLOW = {"pcm", "gmrcm", "brute_force", "williams", "refined", "pcm_soft", "cowa"}
 
 
 @pytest.mark.parametrize(
