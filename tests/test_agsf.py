@@ -150,7 +150,8 @@ def gamma_data():
         n_steps=T_SHORT, gamma_scale=2.0
     )  # the data these tests were written on (scale-2 reading)
     keys = jax.random.split(jax.random.key(3), 3)
-    sims = [simulate(sc, k) for k in keys]
+    simulate_one = jax.jit(lambda k: simulate(sc, k))  # compiled once (eager, op by op)
+    sims = [simulate_one(k) for k in keys]
     zs = jnp.stack([s[1] for s in sims])
     xs = jnp.stack([s[0] for s in sims])
     return sc, xs, zs, sims[0][2]
@@ -328,8 +329,13 @@ def test_bad_input_raises_clear_errors():
 def test_gsukf_builds_with_ukf_subfilters(gamma_data):
     sc, _, zs, ts = gamma_data
     f = build_gsukf(sc.model)
-    state = f.predict(f.params, f.init(f.params), StepInputs(ts[0]))
-    state, info = f.update(f.params, state, zs[0, 0], StepInputs(ts[0]))
+
+    @jax.jit
+    def first_step(state):
+        state = f.predict(f.params, state, StepInputs(ts[0]))
+        return f.update(f.params, state, zs[0, 0], StepInputs(ts[0]))
+
+    state, info = first_step(f.init(f.params))
     assert int(info.extra["n_split"]) == 0 and bool(jnp.isfinite(info.mean).all())
 
 

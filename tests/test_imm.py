@@ -160,13 +160,15 @@ def test_grad_of_loglik_wrt_process_noise_matches_finite_difference():
 
     g = jax.jit(jax.grad(total))(q0)
     eps = 1e-5
-    fd = (total(q0 + eps) - total(q0 - eps)) / (2 * eps)
+    total_jit = jax.jit(total)  # (compiled once: eager, the run's ops compile one by one)
+    fd = (total_jit(q0 + eps) - total_jit(q0 - eps)) / (2 * eps)
     assert np.isfinite(float(g))
     np.testing.assert_allclose(float(g), float(fd), rtol=1e-6, atol=1e-8)
     # the transition matrix is a parameter too: vmap over two of them
     trans = jnp.stack([imm.params.transition, jnp.asarray([[0.5, 0.5], [0.5, 0.5]])])
-    out = jax.vmap(lambda P: F.run(imm, zs, params=imm.params._replace(transition=P))[1].loglik)(trans)
-    np.testing.assert_allclose(out[0], F.run(imm, zs)[1].loglik, rtol=1e-12)
+    loglik = jax.jit(lambda P: F.run(imm, zs, params=imm.params._replace(transition=P))[1].loglik)
+    out = jax.vmap(loglik)(trans)
+    np.testing.assert_allclose(out[0], loglik(imm.params.transition), rtol=1e-12)
     assert not np.allclose(out[0], out[1])
 
 
