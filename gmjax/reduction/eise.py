@@ -892,14 +892,18 @@ def _jvp_slopes(fun, lam, args):
     return f, g, h
 
 
-def _try_scale(slopes, k, acc, lam, raw, f, args, lo, hi):
+def _try_scale(slopes, k, acc, lam, raw, f, args, lo, hi, start=None):
     """Backtracking's ``k``-th candidate ``λ - raw / 2^k`` (clipped to ``[lo, hi]``), evaluated with its
     slopes (the next step starts from them); ``acc = (found, (λ, f, f', f''))`` takes it if nothing was
-    found yet and it does not increase ``f``."""
+    found yet and it does not increase ``f``. Where ``start`` (a run's first pass, :func:`_newton_step`),
+    the candidate is ``λ`` itself and is taken."""
     found, best = acc
     cand = jnp.clip(lam - raw * jnp.asarray(0.5, raw.dtype) ** k, lo, hi)  # (a weak 0.5 ** int32 is float64)
+    if start is not None:
+        cand = jnp.where(start, lam, cand)
     at_cand = (cand, *slopes(cand, args))
-    better = (~found) & jnp.isfinite(at_cand[1]) & (at_cand[1] <= f)
+    decreases = jnp.isfinite(at_cand[1]) & (at_cand[1] <= f)
+    better = (~found) & (decreases if start is None else start | decreases)
     return found | better, tuple(jnp.where(better, a, b) for a, b in zip(at_cand, best))
 
 
@@ -973,22 +977,17 @@ def _newton_step(slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit
     raw = jnp.where(finite & ~flat & started, jnp.clip(raw, -radius, radius), 0.0)
 
     # a zero step (flat) is taken at once: f re-evaluated at λ in another loop may differ in its last bit
-    init = (active & finite & (raw == 0), (lam, f, g, h))
-    # the full step for every run still stepping (or the start), then the halvings where it was rejected
-    take_full = (active & ~init[0]) | starting
-    cand = jnp.where(starting, lam, jnp.clip(lam - raw, lo, hi))  # (= _try_scale's k = 0)
-    at_cand = (cand, *slopes(cand, args))
-    better = starting | (jnp.isfinite(at_cand[1]) & (at_cand[1] <= f))
-    acc = (
-        init[0] | (take_full & better),
-        tuple(jnp.where(take_full & better, a, b) for a, b in zip(at_cand, init[1])),
-    )
+    flat_step = active & finite & (raw == 0)
+    # the full step for every run still stepping (or the start), then the halvings where it was rejected;
+    # a run not stepping counts as found (it keeps its carry: see `moved`)
+    take_full = (active & ~flat_step) | starting
+    acc = _try_scale(slopes, 0, (~take_full, (lam, f, g, h)), lam, raw, f, args, lo, hi, start=starting)
     k = jnp.where(take_full & started, 1, n_backtrack + 1).astype(jnp.int32)
     if early_exit:  # only while some run still halves; under vmap, only those runs (_halvings)
         found, new = _halvings(slopes, n_backtrack, k, acc, active, lam, raw, f, args, lo, hi)
     else:  # every halving for every run that stepped (a run that found a candidate keeps it)
         try_scale = partial(_try_scale, slopes, lam=lam, raw=raw, f=f, args=args, lo=lo, hi=hi)
-        found, new = jax.lax.fori_loop(1, n_backtrack + 1, try_scale, (acc[0] | starting, acc[1]))
+        found, new = jax.lax.fori_loop(1, n_backtrack + 1, try_scale, acc)
     found = found & (finite | starting)
     lam_new, f_new = new[:2]
     small = (jnp.abs(lam_new - lam) < tol) | (jnp.abs(f - f_new) <= tol * jnp.abs(f))
