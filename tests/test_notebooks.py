@@ -24,10 +24,15 @@ def test_notebooks_exist_without_outputs():
 
 
 # Each notebook takes 10-80 s (mostly compiling its filters; 5 minutes together under CI's two
-# workers). The mixtures, Monte Carlo and PCRB notebooks run in the default suite; the tuning, bank
-# and GM-PHD ones with -m slow (their APIs, gradients included, are checked by test_tune, test_bank
-# and test_phd).
-_SLOW_NOTEBOOKS = {"04_threshold_tuning", "05_active_cluster_reduction", "06_gm_phd"}
+# workers). The Monte Carlo and PCRB notebooks run in the default suite; the mixtures / reduction,
+# tuning, bank and GM-PHD ones with -m slow (their APIs, gradients included, are checked by
+# test_mixture, test_reduction, test_tune, test_bank and test_phd).
+_SLOW_NOTEBOOKS = {
+    "01_mixtures_and_reduction",
+    "04_threshold_tuning",
+    "05_active_cluster_reduction",
+    "06_gm_phd",
+}
 
 
 @pytest.mark.parametrize(

@@ -271,10 +271,12 @@ def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
         jax.jit(jax.vmap(f, in_axes=(0, None))) for f in (fun, partial(eise_module._jvp_slopes, fun), by_hand)
     )
 
+    relaxed_parts = jax.jit(eise_module._relaxed_parts, static_argnums=4)  # (eager: op by op)
+
     def evaluate(dtype, seed):
         gm, *_ = random_gm(seed, n=9, d=d, dtype=dtype)
         grid, labels, counts = _grid_for(gm)
-        parts = eise_module._relaxed_parts(gm, grid.astype(dtype), labels, counts, method)
+        parts = relaxed_parts(gm, grid.astype(dtype), labels, counts, method)
         args = (parts, jnp.asarray(0.2, dtype), jnp.asarray(0.01, dtype))
         at = lambda f: f(lams.astype(dtype), args)  # noqa: E731
         return at(value), at(jvp_slopes), at(hand_slopes)
@@ -509,8 +511,9 @@ def test_relaxation_over_distinct_pairs_is_the_full_one(method):
     for a, b in zip(over_pairs, over_all):
         assert np.all(np.isfinite(b))
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(np.max(np.abs(b))))
+    alone_fns = [jax.jit(partial(evaluate, b)) for b in (True, False)]  # compiled once for the four
     for k, problem in enumerate(problems):  # alone: as many chunks as this run needs
-        alone = (jax.jit(partial(evaluate, b))(*problem, lams[k]) for b in (True, False))
+        alone = (fn(*problem, lams[k]) for fn in alone_fns)
         for a, b in zip(*alone):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * float(np.max(np.abs(b))))
     if method == "ci":  # a vmap of vmaps (the inner batch rule, batched again): two runs of two
