@@ -242,8 +242,8 @@ def test_relaxed_vo_ma_at_zero_temperature_is_vo_ma():
     covs = np.stack([np.eye(2) * s for s in rng.uniform(1, 3, K)])
     w = rng.uniform(0, 0.5, K) * (rng.random(K) > 0.2) + 1e-7
     gm = _gm(w, means, covs, rng.random(K) > 0.1)
-    hard, info_h = VoMa(1e-4, 4.0, max_components=6)(gm)
-    soft, info_s = mt.RelaxedVoMa(1e-4, 4.0, max_components=6)(gm)
+    hard, info_h = jax.jit(lambda g: VoMa(1e-4, 4.0, max_components=6)(g))(gm)  # (eager: op by op)
+    soft, info_s = jax.jit(lambda g: mt.RelaxedVoMa(1e-4, 4.0, max_components=6)(g))(gm)
     total = float(jnp.sum(jnp.where(gm.mask, gm.weights, 0.0)))
     scale = (total - float(info_h.pruned_mass)) / total  # VoMa rescales to the input total; the PHD does not
     oh = np.argsort(-np.asarray(hard.weights))[:6]
@@ -261,7 +261,7 @@ def test_gradient_of_mean_gospa_wrt_thresholds_matches_finite_differences(linear
     """d mean-GOSPA / d (T, U) through a vmapped Monte Carlo study with a relaxed reduction and extraction."""
     sc = mt.vo_ma_linear(n_steps=5, max_measurements=16, clutter_rate=5.0)
     keys = jax.random.split(jax.random.PRNGKey(7), 2)
-    samples = jax.vmap(mt.simulate, (None, 0))(sc, keys)
+    samples = jax.jit(jax.vmap(lambda k: mt.simulate(sc, k)))(keys)
     base = mt.gm_phd(
         sc.model,
         **sc.filter_kwargs(),

@@ -207,7 +207,14 @@ from test_contract import REDUCERS  # noqa: E402
 
 # a moment-preserving merge of a partition keeps the mixture's mean and covariance (seed 002 eqs 70-72)
 MOMENT_PRESERVING = {"runnalls", "west", "salmond", "gmrc", "kmeans", "brute_force"}
-_HEAVY = {"williams", "brute_force", "pcm", "gmrcm", "refined"}
+_HEAVY = {
+    "williams",
+    "brute_force",
+    "pcm",
+    "gmrcm",
+    "refined",
+    "cowa",
+}  # (COWA: its QP checked in test_reduction_reference)
 _COMPILED: dict = {}
 
 

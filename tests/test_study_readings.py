@@ -102,8 +102,8 @@ def test_merge_based_reducers_keep_the_mean_but_not_the_mixture(seed):
         rng.normal(scale=3.0, size=(n, d)),
         np.stack([np.diag(rng.uniform(0.5, 2.0, d)) for _ in range(n)]),
     )
-    red = {
-        name: r(gm)[0]
+    red = {  # (compiled: eager, the reductions' ops compile one by one)
+        name: jax.jit(lambda g, r=r: r(g)[0])(gm)
         for name, r in (("GMRC", GMRC(num_out=4, capacity=8)), ("Runnalls", Runnalls(num_out=4, capacity=8)))
     }
     m0, P0 = moments(gm)
