@@ -400,8 +400,8 @@ def _assert_same_derivative(ours, scan):
 def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     """Newton stops once every run is done (``while_loop``s) and returns exactly what the fixed
     8-step ``scan`` returns, alone and under vmap; its forward-mode derivative (a custom JVP through
-    that scan) equals the scan's. Reverse mode: the slow test below, and every ``jax.grad`` of a
-    search (``test_search_in_2d_jit_eager_vmap_float32_and_gradient``, ``tests/test_tune.py``)."""
+    that scan) equals the scan's. Reverse mode: the slow test below, and the 2-D search's ``jax.grad``
+    against finite differences (``test_search_in_2d_gradient_matches_finite_differences``)."""
     args, lam0, early, fixed = _newton_early_and_fixed()
     batched_early, batched_fixed = jax.jit(jax.vmap(early))(args, lam0), jax.jit(jax.vmap(fixed))(args, lam0)
     for a, b in zip(batched_early, batched_fixed):
@@ -543,7 +543,7 @@ def _search_2d_lam_slope(derivative):
 def test_search_in_2d_jit_eager_vmap_float32_and_derivative():
     """The 2-D search (distinct pairs): jit == eager, vmap == loop, float32 near float64, and the
     forward-mode derivative of its ``λ`` through Newton (the custom JVP's scan runs over all pairs)
-    equals finite differences; reverse mode: the slow test below."""
+    equals finite differences; reverse mode: the test below."""
     gms = [random_gm(s, n=10, d=2)[0] for s in range(4)]
     eager = [_search_2d(g) for g in gms]
     assert any(int(r.iterations) > 1 for r in eager)
@@ -567,9 +567,9 @@ def test_search_in_2d_jit_eager_vmap_float32_and_derivative():
     np.testing.assert_allclose(slope, fd, rtol=1e-4)
 
 
-@pytest.mark.slow  # reverse mode through the 2-D search: half a minute of compiling
 def test_search_in_2d_gradient_matches_finite_differences():
-    """``jax.grad`` of the 2-D search's ``λ`` (the transpose of the custom JVP, pairs dropped)."""
+    """``jax.grad`` of the 2-D search's ``λ`` (the transpose of the custom JVP, pairs dropped): the
+    default suite's reverse-mode check through Newton (half a minute of compiling)."""
     slope, fd = _search_2d_lam_slope(jax.grad)
     assert np.isfinite(slope) and slope != 0.0
     np.testing.assert_allclose(slope, fd, rtol=1e-4)
