@@ -31,7 +31,9 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from gmjax._jitcache import IdentityCache
 from gmjax._types import Array, PRNGKey
+from gmjax._validate import is_concrete
 from gmjax.mixture import GaussianMixture
 
 __all__ = ["StepInputs", "StepFlags", "StepInfo", "Filter", "step_inputs", "no_flags", "run", "scan_steps"]
@@ -224,10 +226,33 @@ def run(
     Raises:
         ValueError: ``zs`` not ``(T, m)`` with the model's ``m`` (see :func:`measurement_dim`),
             or inputs without the leading ``T`` axis.
+
+    Called eagerly (no argument traced), ``init`` runs eagerly as always and the scan is a ``jax.jit``
+    kept per filter object, so calling ``run`` again with new measurements, inputs, keys, priors or
+    ``params`` of the same shapes does not compile again.
     """
     params = filter.params if params is None else params
     zs = check_measurements(zs, measurement_dim(params))
-    return scan_steps(filter, params, zs, inputs, key=key, prior=prior, init_state=init_state)
+    if not is_concrete(zs, inputs, key, params, prior, init_state):
+        return scan_steps(filter, params, zs, inputs, key=key, prior=prior, init_state=init_state)
+    if init_state is None:
+        k_init = None if key is None else jax.random.split(key)[0]  # as in scan_steps
+        init_state = filter.init(params, prior, key=k_init)
+    scan = _EAGER_SCANS.get((filter,), lambda: _compiled_scan(filter))
+    return scan(params, zs, inputs, key, init_state)
+
+
+_EAGER_SCANS = IdentityCache(maxsize=32)
+
+
+def _compiled_scan(filter: Filter) -> Callable[..., tuple[Any, StepInfo]]:
+    """``jit`` of :func:`scan_steps` for one filter, taking ``(params, zs, inputs, key, init_state)``
+    (``params`` traced, as the contract allows)."""
+
+    def scan(params, zs, inputs, key, init_state):
+        return scan_steps(filter, params, zs, inputs, key=key, init_state=init_state)
+
+    return jax.jit(scan)
 
 
 def scan_steps(

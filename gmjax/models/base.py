@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import inspect
+from functools import partial
 from typing import Any, Callable, NamedTuple, overload
 
 import jax.numpy as jnp
 
+from gmjax._jitcache import IdentityCache
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
 
@@ -331,12 +333,29 @@ def simulate(scenario: Scenario, key: Array, inputs: Any = None) -> tuple[Array,
         ``(xs (T+1, d) with xs[0] = x_0, zs (T, m), ts)``: ``ts`` is the ``(T,)`` times ``1..T`` when
         the scenario has no inputs, else the :class:`~gmjax.filters.StepInputs` (pass either to
         :func:`gmjax.filters.run`).
+
+    Called eagerly, the simulation is a ``jax.jit`` kept per scenario object: only the first call on a
+    scenario compiles.
     """
+    import jax
+
+    from gmjax._validate import is_concrete
+
+    inputs = scenario.inputs if inputs is None else inputs
+    if is_concrete(key, inputs, scenario.model):  # eager: one compiled program per scenario
+        program = _EAGER_SIMULATIONS.get((scenario,), lambda: jax.jit(partial(_simulate, scenario)))
+        return program(key, inputs)
+    return _simulate(scenario, key, inputs)
+
+
+_EAGER_SIMULATIONS = IdentityCache(maxsize=32)
+
+
+def _simulate(scenario: Scenario, key: Array, inputs: Any) -> tuple[Array, Array, Any]:
     import jax
 
     from gmjax.filters.base import step_inputs
 
-    inputs = scenario.inputs if inputs is None else inputs
     model = scenario.model
     f = as_step_fn(scenario.truth_f or model.f, model.call, "truth_f")
     h = as_step_fn(scenario.truth_h or model.h, model.call, "truth_h")
