@@ -6,8 +6,11 @@ jax.random.fold_in(key, i)``, which under JAX's default (partitionable) threefry
 key depends on its index only, so a study can run any range of its runs (``runs=range(a, b)``), on any
 number of processes, and the parts :func:`merge` into the whole.
 
-**Streaming.** :func:`monte_carlo` runs the study in chunks of ``chunk_size`` runs. One function is
-compiled for the chunk shape (the last chunk is padded and masked), so every chunk runs the same code.
+**Streaming.** :func:`monte_carlo` runs the study in chunks of ``chunk_size`` runs. Two programs are
+compiled for the chunk shape (the last chunk is padded and masked), so every chunk runs the same code:
+the simulation of the chunk's runs, kept per scenario object, chunk size and devices so that every
+filter studied on the same scenario object reuses it (as :func:`gmjax.studies.run_study` does), and the
+filter with its scoring. ``compile_s`` counts the simulation only in the study that compiled it.
 Each chunk returns, per step, the mean and centred sum of squares of every score (squared error,
 position squared error, NEES, component count, ISE, reducer cost, flags), the ``(T, T)`` centred
 cross-moments of the squared errors (for the ARMSE standard error, see :func:`_armse_and_stderr`),
@@ -74,6 +77,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax import metrics
+from gmjax._jitcache import IdentityCache
 from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter, StepInputs, run
@@ -169,18 +173,36 @@ def _any_flag(flags: Any) -> Array:
     return out
 
 
+class _SimulatedRun(NamedTuple):
+    """One simulated run, ready to filter: ``truths (T, d)``, ``zs (T, m)``, the ``StepInputs`` and the
+    filter's key."""
+
+    truths: Array
+    zs: Array
+    inputs: StepInputs
+    filter_key: PRNGKey
+
+
+def _simulate_run(scenario: Scenario, key: PRNGKey) -> _SimulatedRun:
+    k_sim, k_filt = jax.random.split(key)
+    xs, zs, steps = simulate(scenario, k_sim)  # steps: the times, or the scenario's StepInputs
+    inputs = steps if isinstance(steps, StepInputs) else StepInputs(t=steps)
+    return _SimulatedRun(xs[1:], zs, inputs, k_filt)
+
+
+def _filter_simulated(filter: Filter, scenario: Scenario, sim: _SimulatedRun, params: Any) -> FilteredRun:
+    _, infos = run(filter, sim.zs, sim.inputs, key=sim.filter_key, params=params)
+    truths = sim.truths
+    pos = list(scenario.position_dims) if scenario.position_dims else list(range(truths.shape[1]))
+    return FilteredRun(truths, infos.mean, infos.cov, infos, pos, _any_flag(infos.flags))
+
+
 def filter_run(filter: Filter, scenario: Scenario, key: PRNGKey, params: Any = None) -> FilteredRun:
     """Simulate one run of ``scenario`` and filter it (traceable); shared by the scorers.
 
     ``params`` overrides ``filter.params`` (differentiate or vmap a study over them).
     """
-    k_sim, k_filt = jax.random.split(key)
-    xs, zs, steps = simulate(scenario, k_sim)  # steps: the times, or the scenario's StepInputs
-    truths = xs[1:]
-    inputs = steps if isinstance(steps, StepInputs) else StepInputs(t=steps)
-    _, infos = run(filter, zs, inputs, key=k_filt, params=params)
-    pos = list(scenario.position_dims) if scenario.position_dims else list(range(truths.shape[1]))
-    return FilteredRun(truths, infos.mean, infos.cov, infos, pos, _any_flag(infos.flags))
+    return _filter_simulated(filter, scenario, _simulate_run(scenario, key), params)
 
 
 def score_run(
@@ -520,8 +542,9 @@ class MonteCarloResult(NamedTuple):
         moments: the :class:`StudyMoments` behind every number (what :func:`merge` combines).
         scores: :class:`RunScores` ``(k, T)`` of the first ``k = keep_runs`` runs, or ``None``.
         config: the study's configuration (dtype, key, runs, chunk size, versions, ...; JSON-ready).
-        compile_s, run_s: seconds of compilation and of execution; ``resumed_runs``: runs taken
-            from a checkpoint.
+        compile_s, run_s: seconds of compilation (the filter's program, plus the simulation's when
+            this study compiled it: see "Streaming" above) and of execution; ``resumed_runs``: runs
+            taken from a checkpoint.
     """
 
     rmse: np.ndarray
@@ -893,6 +916,44 @@ def _validate(filter: Filter, scenario: Scenario, params: Any) -> Any:
     return dtype
 
 
+class _CachedProgram:
+    """A jitted function and its compiled executables, one per lowered program text (so a change of
+    dtype or configuration that changes the program compiles anew)."""
+
+    def __init__(self, jitted: Any):
+        self.jitted = jitted
+        self._compiled: dict[str, Any] = {}
+
+    def compile(self, *args) -> tuple[Any, float]:
+        """``(executable, seconds spent: lowering, plus compiling when it was not compiled before)``."""
+        t0 = time.perf_counter()
+        lowered = self.jitted.lower(*args)
+        text = lowered.as_text()
+        if text not in self._compiled:
+            self._compiled[text] = lowered.compile()
+        return self._compiled[text], time.perf_counter() - t0
+
+
+_SIMULATION_PROGRAMS = IdentityCache(maxsize=16)
+
+
+def _simulation_program(scenario: Scenario, chunk: int, mesh: jax.sharding.Mesh) -> _CachedProgram:
+    """jit of ``(key, start) -> _SimulatedRun`` batched over runs ``start .. start + chunk - 1``, kept
+    per scenario object, chunk size and mesh: the filters of one study share one simulation program."""
+
+    runs_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("runs"))
+
+    def make() -> _CachedProgram:
+        def fn(key, start):
+            idx = start + jnp.arange(chunk, dtype=jnp.uint32)
+            keys = jax.vmap(run_key, (None, 0))(key, jax.lax.with_sharding_constraint(idx, runs_sharding))
+            return jax.vmap(lambda k: _simulate_run(scenario, k))(keys)
+
+        return _CachedProgram(jax.jit(fn, out_shardings=runs_sharding))
+
+    return _SIMULATION_PROGRAMS.get((scenario,), make, tag=(chunk, mesh))
+
+
 def _chunk_program(
     filter: Filter,
     scenario: Scenario,
@@ -902,25 +963,22 @@ def _chunk_program(
     keep_traj: bool,
     mesh: jax.sharding.Mesh,
 ):
-    """jit of ``(key_data, start, n_valid) -> (StudyMoments, RunScores | None)`` for ``chunk`` runs, and a
-    dict filled when it is traced: ``"ise_tracked"``, whether the filter reports ``extra["ise"]``."""
+    """jit of ``(_SimulatedRun batch, n_valid) -> (StudyMoments, RunScores | None)`` for ``chunk`` runs
+    (the output of :func:`_simulation_program`), and a dict filled when it is traced:
+    ``"ise_tracked"``, whether the filter reports ``extra["ise"]``."""
     P = jax.sharding.PartitionSpec
     meta: dict[str, bool] = {}
     runs_sharding = jax.sharding.NamedSharding(mesh, P("runs"))
     replicated = jax.sharding.NamedSharding(mesh, P())
 
-    def fn(key, start, n_valid):
-        offsets = jnp.arange(chunk, dtype=jnp.uint32)
-        idx = jax.lax.with_sharding_constraint(start + offsets, runs_sharding)
-        keys = jax.vmap(run_key, (None, 0))(key, idx)
-
-        def one(k):
-            r = filter_run(filter, scenario, k, params)
+    def fn(sims, n_valid):
+        def one(sim):
+            r = _filter_simulated(filter, scenario, sim, params)
             meta["ise_tracked"] = "ise" in r.infos.extra
             return score_filtered(r, keep_trajectories=keep_traj)
 
-        scores = jax.vmap(one)(keys)
-        mask = offsets < n_valid
+        scores = jax.vmap(one)(sims)
+        mask = jnp.arange(chunk, dtype=jnp.uint32) < n_valid
         moments = _moments(scores, mask, jnp)
         return moments, (scores if keep else None)
 
@@ -1029,6 +1087,8 @@ def monte_carlo(
     bar = Progress(len(runs), desc=label, unit="runs", enabled=bool(progress), initial=resumed)
     mesh = jax.sharding.Mesh(np.asarray(devices), ("runs",))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    runs_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("runs"))
+    simulation = _simulation_program(scenario, chunk, mesh)
     program, meta = _chunk_program(filter, scenario, params, chunk, keep_runs > 0, keep_trajectories, mesh)
 
     def put(x):
@@ -1038,18 +1098,24 @@ def monte_carlo(
     key_arr = jax.random.wrap_key_data(put(jax.random.key_data(key)), impl=jax.random.key_impl(key))
     compile_s = 0.0
     t0 = time.perf_counter()
+    sims_shape = jax.eval_shape(simulation.jitted, key_arr, put(np.uint32(0)))
+    sims_shape = jax.tree_util.tree_map(
+        lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=runs_sharding), sims_shape
+    )
     if next_run >= runs.stop:
-        program.trace(key_arr, put(np.uint32(0)), put(np.uint32(0)))  # fills meta; nothing to run
+        program.trace(sims_shape, put(np.uint32(0)))  # fills meta; nothing to run
         bar.update(0)
     else:
         with bar.compiling(f"{chunk} runs per chunk"):
+            simulate_chunk, compile_s = simulation.compile(key_arr, put(np.uint32(0)))
             t_c = time.perf_counter()
-            compiled = program.lower(key_arr, put(np.uint32(0)), put(np.uint32(0))).compile()
-            compile_s = time.perf_counter() - t_c
+            compiled = program.lower(sims_shape, put(np.uint32(0))).compile()
+            compile_s += time.perf_counter() - t_c
         t0 = time.perf_counter()
         while next_run < runs.stop:
             n_valid = min(chunk, runs.stop - next_run)
-            out_m, out_s = compiled(key_arr, put(np.uint32(next_run)), put(np.uint32(n_valid)))
+            sims = simulate_chunk(key_arr, put(np.uint32(next_run)))
+            out_m, out_s = compiled(sims, put(np.uint32(n_valid)))
             moments = _chan_merge(moments, _to_host(jax.tree_util.tree_map(_host, out_m)))
             n_keep = runs.start + keep_runs - next_run
             if n_keep > 0:

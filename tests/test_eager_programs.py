@@ -1,5 +1,5 @@
-"""Eager calls of ``run`` and ``simulate`` compile once per filter / scenario: same values as the traced
-paths, no second compile."""
+"""Eager calls of ``run`` and ``simulate`` compile once per filter / scenario, and studies share a
+scenario's simulation: same values as the traced paths, no second compile."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import jax
 import numpy as np
 import pytest
 
+from gmjax import montecarlo
 from gmjax._jitcache import IdentityCache
 from gmjax.filters import base, build_ekf, build_pf, run
 from gmjax.filters.gsf import build_gsf
@@ -87,3 +88,18 @@ def test_eager_simulate_compiles_once_per_scenario_and_equals_the_traced_simulat
         np.testing.assert_array_equal(ti, ts[i])
     program = models_base._EAGER_SIMULATIONS.get((sc,), lambda: None)
     assert program is not None and program._cache_size() == 1
+
+
+def test_filters_of_one_scenario_share_its_compiled_simulation():
+    sc = jump_system()._replace(n_steps=6)
+    key = jax.random.key(5)
+    kw = dict(chunk_size=2, keep_trajectories=True, progress=False)
+    a = montecarlo.monte_carlo(build_ekf(sc.model), sc, 4, key, **kw)
+    b = montecarlo.monte_carlo(build_gsf(sc.model, "ekf", PruneTop(num_out=2), capacity=2), sc, 4, key, **kw)
+    np.testing.assert_array_equal(a.scores.truths, b.scores.truths)
+    mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("runs",))
+    program = montecarlo._simulation_program(sc, 2, mesh)
+    assert len(program._compiled) == 1  # compiled for the first study, reused by the second
+    # the same runs as the differentiable path, which simulates inside its one program
+    ref = montecarlo.study_scores(build_ekf(sc.model), sc, 4, key)
+    np.testing.assert_allclose(a.scores.sq_error, ref.sq_error, rtol=1e-12, atol=1e-14)
