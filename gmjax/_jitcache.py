@@ -10,6 +10,7 @@ reused while the entry lives; the least recently used entry goes first.
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from typing import Any, Callable, Hashable, TypeVar
 
@@ -25,24 +26,24 @@ class IdentityCache:
     def __init__(self, maxsize: int = 32):
         self.maxsize = maxsize
         self._entries: OrderedDict[Hashable, tuple[tuple[Any, ...], Any]] = OrderedDict()
+        self._lock = threading.Lock()
 
     def get(self, owners: tuple[Any, ...], make: Callable[[], V], tag: Hashable = None) -> V:
         """The value stored for ``(owners, tag)`` (the same objects, by ``is``; an equal tag), or
         ``make()`` stored for them."""
         key = (tuple(id(o) for o in owners), tag)
-        hit = self._entries.get(key)
-        if hit is not None and all(a is b for a, b in zip(hit[0], owners)):
+        with self._lock:
+            hit = self._entries.get(key)
+            if hit is not None and all(a is b for a, b in zip(hit[0], owners)):
+                self._entries.move_to_end(key)
+                return hit[1]
+        value = make()  # outside the lock: two threads missing at once both make one, one is kept
+        with self._lock:
+            self._entries[key] = (owners, value)
             self._entries.move_to_end(key)
-            return hit[1]
-        value = make()
-        self._entries[key] = (owners, value)
-        self._entries.move_to_end(key)
-        while len(self._entries) > self.maxsize:
-            self._entries.popitem(last=False)
+            while len(self._entries) > self.maxsize:
+                self._entries.popitem(last=False)
         return value
 
     def __len__(self) -> int:
         return len(self._entries)
-
-    def clear(self) -> None:
-        self._entries.clear()

@@ -90,7 +90,13 @@ class Progress:
         if self.enabled:
             self.stream.write(f"{label}compiling{' ' + what if what else ''} ...")
             self.stream.flush()
-        yield
+        try:
+            yield
+        except BaseException:
+            if self.enabled:  # end the line, so the error starts on its own
+                self.stream.write(" failed\n")
+                self.stream.flush()
+            raise
         if self.enabled:
             self.stream.write(f" done in {time.perf_counter() - t0:.1f} s\n")
             self.stream.flush()

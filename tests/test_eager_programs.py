@@ -95,7 +95,7 @@ def test_filters_of_one_scenario_share_its_compiled_simulation():
     key = jax.random.key(5)
     kw = dict(chunk_size=2, keep_trajectories=True, progress=False)
     a = montecarlo.monte_carlo(build_ekf(sc.model), sc, 4, key, **kw)
-    b = montecarlo.monte_carlo(build_gsf(sc.model, "ekf", PruneTop(num_out=2), capacity=2), sc, 4, key, **kw)
+    b = montecarlo.monte_carlo(build_gsf(sc.model, "ekf", PruneTop(num_out=5), capacity=5), sc, 4, key, **kw)
     np.testing.assert_array_equal(a.scores.truths, b.scores.truths)
     mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("runs",))
     program = montecarlo._simulation_program(sc, 2, mesh)

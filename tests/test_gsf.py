@@ -163,6 +163,11 @@ def test_bad_arguments_raise():
     filt = build_gsf(model, "ekf", None, capacity=1)
     with pytest.raises(ValueError, match="prior"):
         filt.init(filt.params)  # two live prior components > capacity 1
+    zs = jnp.zeros((3, 1))
+    with pytest.raises(ValueError, match="prior"):  # its own prior is concrete under jit too
+        jax.jit(lambda z: run(filt, z)[1].mean)(zs)
+    # a traced prior cannot be counted at trace time: it is fitted (as documented), not refused
+    assert jax.jit(lambda p: run(filt, zs, prior=p)[1].mean)(model.prior).shape == (3, 2)
     with pytest.raises(ValueError, match="reducer"):
         build_gsf(model, "ekf", lambda gm, key=None: (gm, None), capacity=4)
 

@@ -33,14 +33,14 @@ SMALL = textwrap.dedent(
     from gmjax.scenarios.jump_system import jump_system
     from gmjax.reduction import PruneTop
     sc = jump_system()._replace(n_steps=10)
-    filt = build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)
+    filt = build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=5)
     """
 )
 
 
 def small_study(n_steps=10):
     sc = jump_system()._replace(n_steps=n_steps)
-    return sc, build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)
+    return sc, build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=5)
 
 
 def numbers(r: montecarlo.MonteCarloResult) -> dict:
@@ -335,10 +335,13 @@ def test_bad_arguments_raise():
             montecarlo.monte_carlo(filt, sc, args.pop("n_runs"), key, progress=False, **args)
     with pytest.raises(ValueError, match="n_steps"):
         montecarlo.monte_carlo(filt, sc._replace(n_steps=0), 2, key, progress=False)
+    too_small = build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)  # the prior has 5
+    with pytest.raises(ValueError, match="prior: 5 live components exceed the filter capacity 4"):
+        montecarlo.monte_carlo(too_small, sc, 2, key, progress=False)
     sc32 = jump_system(n_steps=5, dtype=jnp.float32)
     with pytest.raises(ValueError, match="filter: its params hold.*float64"):
         montecarlo.monte_carlo(filt, sc32, 2, key, progress=False)
-    filt32 = build_gsf(sc32.model, "ekf", PruneTop(num_out=4), capacity=4)
+    filt32 = build_gsf(sc32.model, "ekf", PruneTop(num_out=4), capacity=5)
     r32 = montecarlo.monte_carlo(filt32, sc32, 2, key, progress=False)  # float32 under x64 stays float32
     assert r32.config["dtype"] == "float32" and np.isfinite(r32.armse)
     promotes = sc32._replace(sample_process_noise=lambda key, t: jnp.zeros(1, jnp.float64))

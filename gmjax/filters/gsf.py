@@ -218,10 +218,17 @@ def reduce_to_capacity(
 
 
 def check_prior(prior: Any, capacity: int) -> GaussianMixture:
-    """Validate a prior mixture against a filter capacity and fit it (normalised) to ``capacity``."""
+    """Validate a prior mixture against a filter capacity and fit it (normalised) to ``capacity``.
+
+    The live count is evaluated at trace time when the prior is concrete (a filter's own prior, closed
+    over by ``monte_carlo`` or a user's ``jit``), so a prior the slots cannot hold is refused there
+    too instead of losing its lightest components; a traced prior (``vmap`` over priors) is not
+    checked.
+    """
     if not isinstance(prior, GaussianMixture):
         raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
-    n_live = gmm.n_active(prior)
+    with jax.ensure_compile_time_eval():
+        n_live = gmm.n_active(prior)
     if not isinstance(n_live, jax.core.Tracer) and int(n_live) > capacity:
         raise ValueError(f"prior: {int(n_live)} live components exceed the filter capacity {capacity}")
     return fit_capacity(gmm.normalize(prior), capacity)[0]
