@@ -298,6 +298,22 @@ def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
     assert steepest > 1e-3  # not only flat relaxations
 
 
+@pytest.mark.parametrize("capacity", [K, 40])
+def test_relaxed_parts_hh_equals_the_one_hot_products(capacity):
+    """The relaxation's ``(G, G)`` matrix ``hh[g, h] = Σ_c (A_g w)_cᵀ S (A_h w)_c``, summed member by
+    member (unrolled up to 32 slots, a ``fori_loop`` above), equals the one-hot products in NumPy,
+    padding included."""
+    gm = random_gm(3, n=capacity - 3, d=2, capacity=capacity)[0]
+    grid, labels, counts = _grid_for(gm)
+    parts = jax.jit(lambda gm: eise_module._relaxed_parts(gm, grid, labels, counts, "ci"))(gm)
+    w = np.where(gm.mask, gm.weights, 0.0)
+    S = np.asarray(eise_module.self_overlaps(gm))
+    live_labels = np.where(np.asarray(gm.mask)[None], np.asarray(labels), -1)
+    A = [(lab[:, None] == np.arange(capacity)) * w[:, None] for lab in live_labels]  # (K, C) each
+    expected = np.array([[np.sum(a * (S @ b)) for b in A] for a in A])
+    np.testing.assert_allclose(parts.hh, expected, rtol=1e-14, atol=1e-15 * np.max(expected))
+
+
 def test_relaxed_eise_gradient_matches_finite_differences():
     gm = case("multimodal")
     grid, labels, counts = _grid_for(gm)

@@ -107,6 +107,17 @@ def onehot_membership(labels: Array, num_clusters: int, dtype: DTypeLike | None 
     return (labels[:, None] == jnp.arange(num_clusters)[None, :]).astype(dtype)
 
 
+_UNROLL_MEMBERS = 32  # member sums unrolled up to this capacity, a fori_loop above it
+
+
+def _sum_over_members(term, num_members: int):
+    """``term(0) + term(1) + … + term(K - 1)``, left to right (``term(m)`` an array, ``m`` a Python
+    int where unrolled, else traced)."""
+    if num_members <= _UNROLL_MEMBERS:
+        return functools.reduce(jnp.add, [term(m) for m in range(num_members)])
+    return jax.lax.fori_loop(1, num_members, lambda m, acc: acc + term(m), term(0))
+
+
 def _cluster_sums(values: Array, labels: Array, num_clusters: int) -> Array:
     """``(C, ...)`` sums of ``values`` ``(K, ...)`` over each hard cluster (``labels == c``; slots
     labelled ``-1`` are left out): the one-hot product ``Aᵀ values`` without the ``(K, C)`` matrix,
@@ -504,9 +515,11 @@ def _relaxed_parts(
 
     The merge statistics are sums over the members of each cluster (:func:`_cluster_sums`), and
     ``hh[g, h] = Σ_n w_n U_g[l_h(n), n]`` with ``U_g[c, n] = Σ_{m ∈ c} w_m S_mn`` (``l_g(m)`` the
-    cluster grid point ``g`` puts ``m`` in): ``G K`` row sums for ``U`` and a gather, ``O(G K²)``
-    additions instead of a one-hot product's ``O(G K² C)`` multiply-adds. Equal to the one-hot sums
-    to rounding.
+    cluster grid point ``g`` puts ``m`` in), its ``(G, G, K)`` terms ``U_g[l_h(n), n]`` summed
+    member by member in slot order: ``O(G² K²)`` selections and additions instead of a one-hot
+    product's ``O(G K² C)`` multiply-adds, and no scatter-add into ``U`` (under ``vmap`` on CPU
+    that cost several times as much: 24 of 34 µs per mixture, K = 20, 1000 mixtures). Equal to the
+    one-hot sums to rounding.
     """
     dtype = gm.means.dtype
     K = gm.capacity
@@ -515,8 +528,12 @@ def _relaxed_parts(
     sums = jax.vmap(partial(_cluster_sums, num_clusters=K), in_axes=(None, 0))
     S = self_overlaps(gm) if overlaps is None else overlaps
     own = jnp.maximum(labels, 0)
-    U = sums(w[:, None] * S, labels)  # (G, C, K): U[g, c, n] = Σ_{m: l_g(m) = c} w_m S_mn
-    U_own = U[:, own, jnp.arange(K)]  # (G, G, K): U[g, l_h(n), n]
+    wS = w[:, None] * S
+
+    def U_own_term(m):  # member m's part of U[g, l_h(n), n], U[g, c, n] = Σ_{m: l_g(m) = c} w_m S_mn
+        return jnp.where(labels[:, None, m, None] == own[None], wS[m][None, None], 0.0)
+
+    U_own = _sum_over_members(U_own_term, K)  # (G, G, K): U[g, l_h(n), n], member by member
     hh = jnp.einsum("ghn,n->gh", jnp.where(labels[None, :, :] >= 0, U_own, 0.0), w)
     if method == "ci":
         info = gaussian.spd_inv(gm.covs) if info is None else info
