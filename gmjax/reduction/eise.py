@@ -924,6 +924,16 @@ def _try_scale(slopes, k, acc, lam, raw, f, args, lo, hi, start=None):
     return found | better, tuple(jnp.where(better, a, b) for a, b in zip(at_cand, best))
 
 
+def _first_where(need: Array, size: int) -> Array:
+    """``(size,)`` int32: the indices where ``need`` ``(B,)`` holds, in increasing order, then ``B``
+    (out of range: a ``take`` with ``mode="clip"`` reads a real run, a scatter with ``mode="drop"``
+    writes nothing). A running count and a scatter: ``argsort(~need, stable=True)`` gives the same
+    order but sorts, which on XLA:CPU costs about 0.1 ms for 1000 runs, once per Newton step."""
+    B = need.shape[0]
+    slot = jnp.where(need, jnp.cumsum(need.astype(jnp.int32)) - 1, size)
+    return jnp.full(size, B, jnp.int32).at[slot].set(jnp.arange(B, dtype=jnp.int32), mode="drop")
+
+
 _HALVING_BLOCK = 32  # runs per block when a batch halves only the runs whose full step was rejected
 
 
@@ -959,8 +969,7 @@ def _halvings(slopes, n_backtrack: int, k, acc, active, lam, raw, f, args, lo, h
         block = _HALVING_BLOCK
         n_blocks = -(-axis_size // block)
         need = (k <= n_backtrack) & ~acc[0] & active
-        order = jnp.argsort(~need, stable=True)  # the runs still halving first
-        order = jnp.pad(order, (0, n_blocks * block - axis_size), constant_values=axis_size)
+        order = _first_where(need, n_blocks * block)  # the runs still halving, then axis_size
 
         def one_block(state):
             j, acc = state
@@ -1135,8 +1144,7 @@ def _cluster_unless_known(cluster, known: Array, known_labels: Array, *operands)
         block = min(_CLUSTER_BLOCK, axis_size)
         n_blocks = -(-axis_size // block)
         need = ~known
-        order = jnp.argsort(known, stable=True)  # the runs that need a clustering first
-        order = jnp.pad(order, (0, n_blocks * block - axis_size), constant_values=axis_size)
+        order = _first_where(need, n_blocks * block)  # the runs that need a clustering, then axis_size
 
         def one_block(state):
             j, labels = state
