@@ -237,18 +237,18 @@ def main(argv: list[str] | None = None) -> dict:
                     )
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
-    previous_note = ""
+    history: list[str] = []
     if args.merge_with:
         import json
 
         with open(args.merge_with) as f:
-            rows, merge_note, previous_note = merge_results(rows, json.load(f))
+            rows, merge_note, history = merge_results(rows, json.load(f))
         args.note = f"{args.note} {merge_note}".strip()
     data = {
         "rows": rows,
         "failed": failed,
         "note": args.note,
-        "previous_note": previous_note,
+        "history": history,
         "loadavg_before": load_before,
         "loadavg_after": load_after,
     }
@@ -259,11 +259,11 @@ def main(argv: list[str] | None = None) -> dict:
     return data
 
 
-def merge_results(rows: list[dict], previous: dict) -> tuple[list[dict], str, str]:
+def merge_results(rows: list[dict], previous: dict) -> tuple[list[dict], str, list[str]]:
     """Rows of ``previous`` (a results dict) for the cases not in ``rows``, then ``rows``.
 
-    Returns ``(rows, note, previous_note)``: ``note`` says how many cases were kept and the load
-    of their run; ``previous_note`` carries the earlier run's notes (its own earlier ones included).
+    Returns ``(rows, note, history)``: ``note`` says how many cases were kept and the load of their
+    run; ``history`` the earlier runs' notes, newest first (``previous``'s note, then its history).
     """
     rerun = {(r["system"], r["filter"], r["dtype"]) for r in rows}
     kept = [r for r in previous["rows"] if (r["system"], r["filter"], r["dtype"]) not in rerun]
@@ -272,8 +272,14 @@ def merge_results(rows: list[dict], previous: dict) -> tuple[list[dict], str, st
         f"Rows of {n_kept} cases kept from an earlier run (load {' '.join(previous['loadavg_before'])}"
         f" / {' '.join(previous['loadavg_after'])})."
     )
-    previous_note = " ".join(t for t in (previous.get("note"), previous.get("previous_note")) if t)
-    return kept + rows, note, previous_note
+    return kept + rows, note, _notes_of(previous)
+
+
+def _notes_of(data: dict) -> list[str]:
+    """A results dict's own note, then its earlier runs' notes (``history``; older results kept them
+    joined in one ``previous_note``)."""
+    earlier = data.get("history") or ([data["previous_note"]] if data.get("previous_note") else [])
+    return [data["note"], *earlier] if data.get("note") else list(earlier)
 
 
 def render_markdown(data: dict) -> str:
@@ -330,8 +336,9 @@ def render_markdown(data: dict) -> str:
         md += "\nCases that could not run: " + "; ".join(data["failed"]) + "\n"
     if data["note"]:
         md += f"\nNote: {data['note']}\n"
-    if data.get("previous_note"):
-        md += f"\nThe earlier run's note: {data['previous_note']}\n"
+    earlier = _notes_of({**data, "note": None})
+    if earlier:
+        md += "\n## Earlier runs of the kept rows, newest first\n\n" + "".join(f"- {t}\n" for t in earlier)
     return md
 
 

@@ -132,15 +132,20 @@ def test_bench_merge_keeps_other_cases_their_runs_and_notes():
         "loadavg_before": ["0.1", "0.2", "0.3"],
         "loadavg_after": ["1.1", "1.2", "1.3"],
     }
-    rows, note, previous_note = merge_results([_row("1-D", "R-GSF", "float64", 50, repeats=3)], first)
+    rows, note, history = merge_results([_row("1-D", "R-GSF", "float64", 50, repeats=3)], first)
     assert [(r["filter"], r["n_runs"]) for r in rows] == [("NL-GSF", 1000), ("R-GSF", 50)]
     assert note == "Rows of 1 cases kept from an earlier run (load 0.1 0.2 0.3 / 1.1 1.2 1.3)."
-    assert previous_note == "first run's note."
-    second = {**first, "rows": rows, "note": note, "previous_note": previous_note, "failed": []}
+    assert history == ["first run's note."]
+    second = {**first, "rows": rows, "note": note, "history": history, "failed": []}
     md = render_markdown(second)
     assert "| 1-D | NL-GSF | float64 | off | 1000 |" in md
     assert "| 1-D | R-GSF | float64 | off | 50 |" in md
     assert "3 repeats, some rows' not recorded" in md
-    assert "The earlier run's note: first run's note." in md
+    assert f"Note: {note}" in md
+    assert "## Earlier runs of the kept rows, newest first\n\n- first run's note.\n" in md
     _, _, carried = merge_results([], second)
-    assert carried == f"{note} first run's note."
+    assert carried == [note, "first run's note."]
+    # results written before the notes became a list carry them joined in one string
+    legacy = {**second, "history": None, "previous_note": "older notes."}
+    assert merge_results([], legacy)[2] == [note, "older notes."]
+    assert "\n- older notes.\n" in render_markdown(legacy)
