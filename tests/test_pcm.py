@@ -438,6 +438,32 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     _assert_same_derivative(*(_batched_derivative(forward(f), args, lam0) for f in (early, fixed)))
 
 
+def test_newton_steps_only_the_runs_still_stepping_in_a_large_batch():
+    """Under vmap over more than ``2 _STEP_CHUNK_MIN`` runs each Newton pass gathers the runs still
+    stepping and steps them in chunks (:func:`eise._step_until_done`): every run's result is
+    bitwise the fixed ``scan``'s, with per-run ``τ, α`` and with ``τ, α`` the batch shares (as
+    :func:`search_confidence` under vmap passes them: constants to XLA)."""
+    args, lam0, early, fixed = _newton_early_and_fixed()
+    n = 2 * eise_module._STEP_CHUNK_MIN + 40
+    reps = -(-n // lam0.shape[0])
+    big_args = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * reps)[:n], args)
+    shifts = np.repeat(np.linspace(-0.15, 0.15, reps), lam0.shape[0])[:n]
+    big_lam0 = jnp.clip(jnp.concatenate([lam0] * reps)[:n] + shifts, 1.0, 3.0)
+
+    def shared(newton):  # τ and α the batch shares
+        return lambda parts, lam: newton((parts, jnp.asarray(0.2), jnp.asarray(0.01)), lam)
+
+    for make in (lambda f: f, shared):
+        operands = (big_args if make is not shared else big_args[0], big_lam0)
+        got, want = (jax.jit(jax.vmap(make(f)))(*operands) for f in (early, fixed))
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        iterations = np.asarray(got[3])
+        # runs stop at different passes, and fewer than a quarter of them step to the end
+        assert iterations.min() <= 2 and iterations.max() >= 4
+        assert np.sum(iterations == iterations.max()) < n // 4
+
+
 @pytest.mark.slow  # two reverse-mode programs through the scan: about a minute of compiling
 def test_newton_early_exit_differentiates_like_the_fixed_scan_in_reverse_mode():
     """``jax.grad`` through Newton's early exit (the transpose of its custom JVP) equals the fixed
@@ -704,12 +730,14 @@ def test_newton_takes_the_derivatives_of_a_halved_candidate():
     assert sum(e[4] for e in expected) >= 2  # halvings happened
 
 
-def test_newton_halves_only_the_runs_that_need_it_under_vmap():
+@pytest.mark.parametrize("n", [3 * eise_module._HALVING_BLOCK + 5, 2 * eise_module._STEP_CHUNK_MIN + 40])
+def test_newton_halves_only_the_runs_that_need_it_under_vmap(n):
     """A batch larger than a halving block: the runs whose full step overshoots are gathered and
     halved in blocks of ``_HALVING_BLOCK`` (more than one block here), the others keep their full
-    step; every run's iterates are the plain loop's, alone, under vmap and in the fixed ``scan``."""
+    step; every run's iterates are the plain loop's, alone, under vmap and in the fixed ``scan``.
+    The larger batch steps in chunks of the runs still stepping (:func:`eise._step_until_done`),
+    and halves within them."""
     rng = np.random.default_rng(1)
-    n = 3 * eise_module._HALVING_BLOCK + 5
     centres, widths = rng.uniform(1.5, 2.5, n), rng.uniform(0.05, 0.1, n)
     lam0 = centres + widths * rng.choice([-1.0, 1.0], n) * rng.uniform(0.5, 1.0, n)  # half overshoot at once
     expected = _check_newton_against_the_numpy_loop(centres, widths, lam0)

@@ -47,8 +47,9 @@ then computed, and the grid's best is kept whenever Newton failed or did not do 
 The clustering at Newton's ``λ`` is a grid point's wherever the two judgment matrices are equal
 (the clustering depends on ``λ`` only through it); only the other runs run the overlap sweep
 (:func:`_cluster_unless_known`; under ``vmap`` gathered into blocks).
-Newton's loops exit early (under ``vmap``: once every run of the batch is done, and only the few
-runs whose full step was rejected halve it, gathered into blocks); a custom JVP differentiates the
+Newton's loops exit early (under ``vmap`` each pass steps only the runs still stepping, gathered
+into chunks, until every run of the batch is done, and only the few runs whose full step was
+rejected halve it, gathered into blocks); a custom JVP differentiates the
 equivalent fixed-length ``scan``, so values and derivatives are those of ``newton_steps`` masked
 steps. For that, a run's relaxed value and slopes must not depend on the batch they are evaluated
 in: ``_relaxed_value_and_slopes`` sums elementwise in a fixed order (XLA:CPU gives large reductions
@@ -60,7 +61,7 @@ from __future__ import annotations
 
 import functools
 from functools import partial
-from typing import Any, NamedTuple, Sequence
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -1037,18 +1038,88 @@ def _newton_step(slopes, args, lo, hi, tol, radius, n_backtrack: int, early_exit
 
 def _newton_loop(slopes, steps: int, n_backtrack: int, early_exit: bool, args, lam0, lo, hi, tol, radius):
     """:func:`_newton`'s iteration: a ``while_loop`` that stops once every run is done
-    (``early_exit``), or a ``scan`` of ``steps + 1`` passes (reverse-differentiable); equal values.
-    The first pass evaluates the start (:func:`_newton_step`)."""
-    step = partial(_newton_step, slopes, args, lo, hi, tol, radius, n_backtrack, early_exit)
-    lam0 = jnp.asarray(lam0)
-    unset = jnp.zeros_like(lam0)  # f, f', f'' until the first pass evaluates the start
-    false, zero = jnp.zeros((), bool), jnp.zeros((), jnp.int32)
-    init: Any = (lam0, unset, unset, unset, false, false, zero, false)  # the carry of _newton_step
+    (``early_exit``; :func:`_step_until_done`), or a ``scan`` of ``steps + 1`` passes
+    (reverse-differentiable); equal values. The first pass evaluates the start (:func:`_newton_step`)."""
     if early_exit:
-        lam, f, *_, ok, it, _ = jax.lax.while_loop(lambda c: ~c[7] | (~c[4] & (c[6] < steps)), step, init)
-    else:
-        (lam, f, *_, ok, it, _), _ = jax.lax.scan(lambda c, _: (step(c), None), init, None, length=steps + 1)
+        lam, f, *_, ok, it, _ = _step_until_done(slopes, steps, n_backtrack, args, lam0, lo, hi, tol, radius)
+        return lam, f, ok, it
+    step = partial(_newton_step, slopes, args, lo, hi, tol, radius, n_backtrack, early_exit)
+    (lam, f, *_, ok, it, _), _ = jax.lax.scan(
+        lambda c, _: (step(c), None), _newton_start(lam0), None, length=steps + 1
+    )
     return lam, f, ok, it
+
+
+def _newton_start(lam0) -> tuple:
+    """The carry of :func:`_newton_step` before the first pass (``f``, ``f'``, ``f''`` unset until
+    that pass evaluates the start)."""
+    lam0 = jnp.asarray(lam0)
+    unset = jnp.zeros_like(lam0)
+    false, zero = jnp.zeros((), bool), jnp.zeros((), jnp.int32)
+    return (lam0, unset, unset, unset, false, false, zero, false)
+
+
+_STEP_CHUNKS = 4  # under vmap, a Newton pass steps the batch's runs still stepping in chunks of a quarter
+_STEP_CHUNK_MIN = 64  # of the batch, at least this many runs (batches up to twice this step whole)
+
+
+def _step_until_done(slopes, steps: int, n_backtrack: int, args, lam0, lo, hi, tol, radius) -> tuple:
+    """:func:`_newton_step` from :func:`_newton_start` until the run is done or has taken ``steps``
+    steps; the final carry.
+
+    Alone, a ``while_loop``. Under ``vmap`` a ``while_loop`` runs every run in every pass until the
+    batch's slowest run is done, and on the seed 000 jump system a third to a half of the runs
+    stop after the first step while 13–47 % take all 8 (docs/scaling.md), so the batch rule gathers
+    the runs still stepping at each pass and steps them in chunks of a quarter of the batch (at
+    least :data:`_STEP_CHUNK_MIN` runs; usually as many chunks as a quarter of the runs still
+    stepping, rounded up). A run's arithmetic is the same in a chunk as in the whole batch (the
+    relaxed slopes sum in a fixed order from 32 runs up).
+    """
+    keep_on = lambda c: ~c[7] | (~c[4] & (c[6] < steps))  # noqa: E731  (not started, or still stepping)
+
+    def step(args, lo, hi, tol, radius, carry):
+        return _newton_step(slopes, args, lo, hi, tol, radius, n_backtrack, True, carry)
+
+    def alone(args, lam0, lo, hi, tol, radius):
+        return jax.lax.while_loop(keep_on, partial(step, args, lo, hi, tol, radius), _newton_start(lam0))
+
+    batched = jax.custom_batching.custom_vmap(alone)
+
+    @batched.def_vmap
+    def _only_those_stepping(axis_size, in_batched, *operands):
+        # the operands the batch shares stay shared (a constant τ stays a constant to XLA, which
+        # may round its arithmetic differently from that of an array of τ's)
+        axes = jax.tree_util.tree_map(lambda b: 0 if b else None, list(in_batched))
+        out_batched = tuple(True for _ in range(8))
+        if axis_size <= 2 * _STEP_CHUNK_MIN:
+            return jax.vmap(alone, in_axes=axes)(*operands), out_batched
+        args, lam0, lo, hi, tol, radius = operands
+        fixed, fixed_axes = (args, lo, hi, tol, radius), (axes[0], *axes[2:])
+        if axes[1] is None:
+            lam0 = jnp.broadcast_to(lam0, (axis_size,) + jnp.shape(lam0))
+        chunk = max(-(-axis_size // _STEP_CHUNKS), _STEP_CHUNK_MIN)
+        n_chunks = -(-axis_size // chunk)
+
+        def one_pass(carry):
+            stepping = keep_on(carry)
+            order = _first_where(stepping, n_chunks * chunk)
+
+            def one_chunk(state):
+                j, carry = state
+                rows = jax.lax.dynamic_slice(order, (j * chunk,), (chunk,))
+                take = lambda axis, a: a if axis is None else jnp.take(a, rows, axis=0, mode="clip")  # noqa: E731
+                gathered = jax.tree_util.tree_map(take, fixed_axes, fixed, is_leaf=lambda x: x is None)
+                carry_rows = jax.tree_util.tree_map(lambda a: jnp.take(a, rows, axis=0, mode="clip"), carry)
+                new = jax.vmap(step, in_axes=(*fixed_axes, 0))(*gathered, carry_rows)
+                return j + 1, jax.tree_util.tree_map(lambda a, b: a.at[rows].set(b, mode="drop"), carry, new)
+
+            n_stepping = jnp.sum(stepping.astype(jnp.int32))
+            return jax.lax.while_loop(lambda s: s[0] * chunk < n_stepping, one_chunk, (0, carry))[1]
+
+        start = jax.vmap(_newton_start)(lam0)
+        return jax.lax.while_loop(lambda c: jnp.any(keep_on(c)), one_pass, start), out_batched
+
+    return batched(args, lam0, lo, hi, tol, radius)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
@@ -1095,11 +1166,15 @@ def _newton(
     value at the candidate apart. The start is evaluated by the loop's first pass, so the compiled
     program holds two copies of the evaluation (the step loop's and the halving blocks'), not three.
 
-    The loops exit early: the step loop once the run is done (under ``vmap``: once every run in
-    the batch is), the halvings once a candidate decreases ``fun``; under ``vmap`` only the runs
-    whose full step was rejected halve, gathered into blocks (:func:`_halvings`). ``while_loop`` has no
-    reverse mode, so a custom JVP differentiates the equivalent fixed-length ``scan`` instead: the
-    values are identical and the derivatives are those of the ``scan`` (``jax.grad`` works).
+    The loops exit early: the step loop once the run is done, the halvings once a candidate
+    decreases ``fun``. Under ``vmap`` each pass of the step loop steps only the runs still stepping,
+    gathered into chunks of a quarter of the batch (:func:`_step_until_done`), until every run is
+    done, and only the runs whose full step was rejected halve, gathered into blocks
+    (:func:`_halvings`). ``while_loop`` has no reverse mode, so a custom JVP differentiates the
+    equivalent fixed-length ``scan`` instead: the values are identical (bitwise in
+    ``tests/test_pcm.py``; compiled inside the whole search, XLA may fuse the two differently, and
+    on 4 × 1000 jump-system searches 0–4 runs' ``λ`` differed by up to 1e-14 relative) and the
+    derivatives are those of the ``scan`` (``jax.grad`` works).
     ``fun`` must take everything it differentiates through ``args`` (a pytree), not a closure.
     ``slopes(λ, args) -> (f, f', f'')`` gives the value and derivatives (default:
     forward-over-forward ``jvp`` of ``fun``).
