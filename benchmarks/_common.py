@@ -45,6 +45,31 @@ def time_jax(fn: Callable, *args: Any, repeats: int = 5) -> dict[str, float]:
     return {"compile_s": max(first - med, 0.0), "run_min_s": min(runs), "run_median_s": med}
 
 
+def time_alternating(calls: list[Callable[[], Any]], repeats: int = 5) -> list[dict[str, float]]:
+    """Time several jitted zero-argument calls in alternating rounds, one call of each per round.
+
+    For a ratio of two programs on a machine whose speed drifts (identical runs differ by up to
+    ~30 % here): each round times every call once, so a slow spell slows all of them alike. Returns
+    one :func:`time_jax`-style dict per call, in order.
+    """
+    firsts = []
+    for call in calls:
+        t0 = time.perf_counter()
+        block(call())
+        firsts.append(time.perf_counter() - t0)
+    runs: list[list[float]] = [[] for _ in calls]
+    for _ in range(repeats):
+        for call, times in zip(calls, runs):
+            t0 = time.perf_counter()
+            block(call())
+            times.append(time.perf_counter() - t0)
+    out = []
+    for first, times in zip(firsts, runs):
+        med = statistics.median(times)
+        out.append({"compile_s": max(first - med, 0.0), "run_min_s": min(times), "run_median_s": med})
+    return out
+
+
 def time_python(fn: Callable, *args: Any, repeats: int = 3) -> dict[str, float]:
     """Time a plain Python/NumPy function over ``repeats`` calls."""
     runs = []

@@ -149,3 +149,18 @@ def test_bench_merge_keeps_other_cases_their_runs_and_notes():
     legacy = {**second, "history": None, "previous_note": "older notes."}
     assert merge_results([], legacy)[2] == [note, "older notes."]
     assert "\n- older notes.\n" in render_markdown(legacy)
+
+
+def test_time_alternating_times_one_call_of_each_per_round():
+    """The benchmark's alternating rounds: every call compiled (first call) in order, then one call of
+    each per round, so drift slows them alike; per call the best and median of its rounds."""
+    from _common import time_alternating
+
+    order: list[str] = []
+    calls = [lambda name=name: order.append(name) for name in ("minimal", "grid", "newton")]
+    timed = time_alternating(calls, repeats=3)
+    assert order == ["minimal", "grid", "newton"] * 4
+    assert len(timed) == 3
+    for t in timed:
+        assert set(t) == {"compile_s", "run_min_s", "run_median_s"}
+        assert 0.0 <= t["run_min_s"] <= t["run_median_s"] and t["compile_s"] >= 0.0
