@@ -237,3 +237,25 @@ def test_gaussian_sum_smoother_beats_filter_rmse():
     rmse_s = np.sqrt(np.mean((np.asarray(sm) - xs) ** 2))
     print("RMSE filter", rmse_f, "smoother", rmse_s)
     assert rmse_s < 0.9 * rmse_f, (rmse_s, rmse_f)
+
+
+def test_gaussian_sum_smoother_says_what_its_capacity_cannot_hold():
+    """Nothing lost silently: a last filtered mixture larger than ``capacity`` is refused, and a
+    backward step whose reducer keeps more live components than ``capacity`` sets ``overflow``."""
+    from gmjax.reduction import PruneTop
+
+    model = _bimodal_model()
+    _, zs = _bimodal_data(6, np.random.default_rng(3))
+    filt = build_gsf(model, "kf", PruneTop(num_out=4), 4, track_ise=False)
+    mixtures = run(filt, jnp.asarray(zs)[:, None])[0].mixture
+    assert int(gmm.n_active(jax.tree_util.tree_map(lambda a: a[-1], mixtures))) == 4
+    with pytest.raises(ValueError, match="capacity: the last filtered mixture has 4 live components"):
+        gaussian_sum_smoother(model, mixtures, capacity=2, method="kf")
+    # the last mixture cut to its heaviest component: it fits, but a reducer keeping 4 does not
+    last_mask = jnp.arange(4) == jnp.argmax(mixtures.weights[-1])
+    one_last = mixtures._replace(mask=mixtures.mask.at[-1].set(last_mask))
+    keeps_4 = gaussian_sum_smoother(model, one_last, capacity=2, reducer=PruneTop(num_out=4), method="kf")
+    assert np.all(np.asarray(keeps_4.reduction.overflow))
+    assert keeps_4.mixture.mask.shape == (6, 2)
+    keeps_2 = gaussian_sum_smoother(model, one_last, capacity=2, reducer=Runnalls(num_out=2), method="kf")
+    assert not np.any(np.asarray(keeps_2.reduction.overflow))

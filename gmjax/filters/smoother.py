@@ -241,7 +241,9 @@ class GSSmootherResult(NamedTuple):
         mixture: smoothed mixtures with a leading ``T`` axis (capacity ``capacity``).
         mean: ``(T, d)`` their means. cov: ``(T, d, d)`` their covariances.
         reduction: the reducer's :class:`~gmjax.reduction.ReductionInfo` per backward step
-            (leading ``T - 1`` axis; entry ``k`` reduced the smoothed mixture of entry ``k``).
+            (leading ``T - 1`` axis; entry ``k`` reduced the smoothed mixture of entry ``k``). Its
+            ``overflow`` is also True where the reducer's output held more live components than
+            ``capacity`` (the heaviest were kept).
     """
 
     mixture: GaussianMixture
@@ -328,7 +330,9 @@ def gaussian_sum_smoother(
         inputs: the forward pass's inputs (``None``: times ``1..T``).
         reducer: a :mod:`gmjax.reduction` config (stateless; e.g. ``Runnalls(num_out=capacity)``);
             ``None`` keeps the ``capacity`` heaviest components (:class:`~gmjax.reduction.PruneTop`).
-        capacity: slots of the smoothed mixtures (default: the filtered mixtures' capacity).
+        capacity: slots of the smoothed mixtures (default: the filtered mixtures' capacity). The
+            last filtered mixture (the last smoothed one) must fit: ``ValueError`` when it is
+            concrete and has more live components; a traced one (under ``jit``) keeps its heaviest.
         method: how each pair is re-predicted: ``"ekf"`` (``"kf"``) or a sigma-point method.
         params: a :class:`~gmjax.models.ModelParams` (default ``model.params``).
 
@@ -353,6 +357,13 @@ def gaussian_sum_smoother(
     f, _, fj, _ = model.step_fns()
     pred = predict_with_cross(f, fj, method)
     last = jax.tree_util.tree_map(lambda a: a[-1], mixtures)
+    with jax.ensure_compile_time_eval():
+        n_last = gmm.n_active(last)
+    if not isinstance(n_last, jax.core.Tracer) and int(n_last) > capacity:
+        raise ValueError(
+            f"capacity: the last filtered mixture has {int(n_last)} live components, more than "
+            f"capacity={capacity} slots hold (the smoothed mixture of the last step is the filtered one)"
+        )
     last = fit_capacity(gmm.normalize(last), capacity)[0]
 
     def body(smoothed, xs):
@@ -360,8 +371,8 @@ def gaussian_sum_smoother(
         noise = model.noise_at(params.process_noise, inp)
         full = _gs_backward_step(pred, filtered, smoothed, inp, noise)
         out, _, rinfo = reducer.reduce(full, reducer.init(full.capacity), key=None)
-        out = fit_capacity(out, capacity)[0]
-        return out, (out, rinfo)
+        out, overflow = fit_capacity(out, capacity)
+        return out, (out, rinfo._replace(overflow=rinfo.overflow | overflow))
 
     filtered = jax.tree_util.tree_map(lambda a: a[:-1], mixtures)
     if T == 1:
