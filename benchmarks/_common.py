@@ -33,16 +33,7 @@ def time_jax(fn: Callable, *args: Any, repeats: int = 5) -> dict[str, float]:
     Returns ``{"compile_s", "run_min_s", "run_median_s"}`` where ``compile_s`` is the first call's
     time minus the median steady run time.
     """
-    t0 = time.perf_counter()
-    block(fn(*args))
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        block(fn(*args))
-        runs.append(time.perf_counter() - t0)
-    med = statistics.median(runs)
-    return {"compile_s": max(first - med, 0.0), "run_min_s": min(runs), "run_median_s": med}
+    return time_alternating([lambda: fn(*args)], repeats=repeats)[0]
 
 
 def time_alternating(calls: list[Callable[[], Any]], repeats: int = 5) -> list[dict[str, float]]:

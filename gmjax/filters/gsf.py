@@ -49,6 +49,7 @@ __all__ = [
     "GSFParams",
     "build_gsf",
     "local_filter_for",
+    "concrete_n_active",
     "fit_capacity",
     "gs_predict",
     "gs_update",
@@ -227,11 +228,19 @@ def check_prior(prior: Any, capacity: int) -> GaussianMixture:
     """
     if not isinstance(prior, GaussianMixture):
         raise ValueError(f"prior: expected a GaussianMixture, got {type(prior).__name__}")
-    with jax.ensure_compile_time_eval():
-        n_live = gmm.n_active(prior)
-    if not isinstance(n_live, jax.core.Tracer) and int(n_live) > capacity:
-        raise ValueError(f"prior: {int(n_live)} live components exceed the filter capacity {capacity}")
+    n_live = concrete_n_active(prior)
+    if n_live is not None and n_live > capacity:
+        raise ValueError(f"prior: {n_live} live components exceed the filter capacity {capacity}")
     return fit_capacity(gmm.normalize(prior), capacity)[0]
+
+
+def concrete_n_active(gm: GaussianMixture) -> int | None:
+    """``gm``'s live count where it is known at trace time (a concrete mixture, also one closed over
+    inside ``jit``); ``None`` for a traced one. For refusing, at the API boundary, what a capacity
+    cannot hold instead of truncating it silently."""
+    with jax.ensure_compile_time_eval():
+        n_live = gmm.n_active(gm)
+    return None if isinstance(n_live, jax.core.Tracer) else int(n_live)
 
 
 def build_gsf(

@@ -339,7 +339,7 @@ def gaussian_sum_smoother(
     Returns:
         :class:`GSSmootherResult`.
     """
-    from gmjax.filters.gsf import check_reducer, fit_capacity
+    from gmjax.filters.gsf import check_reducer, concrete_n_active, fit_capacity
     from gmjax.reduction import PruneTop
 
     check_model(model)
@@ -357,11 +357,10 @@ def gaussian_sum_smoother(
     f, _, fj, _ = model.step_fns()
     pred = predict_with_cross(f, fj, method)
     last = jax.tree_util.tree_map(lambda a: a[-1], mixtures)
-    with jax.ensure_compile_time_eval():
-        n_last = gmm.n_active(last)
-    if not isinstance(n_last, jax.core.Tracer) and int(n_last) > capacity:
+    n_last = concrete_n_active(last)
+    if n_last is not None and n_last > capacity:
         raise ValueError(
-            f"capacity: the last filtered mixture has {int(n_last)} live components, more than "
+            f"capacity: the last filtered mixture has {n_last} live components, more than "
             f"capacity={capacity} slots hold (the smoothed mixture of the last step is the filtered one)"
         )
     last = fit_capacity(gmm.normalize(last), capacity)[0]
