@@ -65,11 +65,14 @@ goes through simulation, filtering and scoring. :mod:`gmjax.tune` is an optax lo
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
 import os
 import time
+import zipfile
+import zlib
 from typing import Any, Callable, NamedTuple, Sequence, cast
 
 import jax
@@ -87,8 +90,10 @@ __all__ = [
     "RunScores",
     "StudyMoments",
     "MonteCarloResult",
+    "BlockSums",
     "FilteredRun",
     "monte_carlo",
+    "default_chunk_size",
     "merge",
     "summarize",
     "load_result",
@@ -400,6 +405,66 @@ def _chan_merge(a: StudyMoments, b: StudyMoments) -> StudyMoments:
     )
 
 
+class BlockSums(NamedTuple):
+    """A study's accumulators as the complete nodes of one fixed binary tree over its blocks of runs.
+
+    Block ``k`` holds runs ``[k b, (k + 1) b)`` of the whole study (``b = block_size``, the last block
+    clipped at ``n_runs``); each is summed by one device in one chunk. Node ``(level, index)`` holds
+    blocks ``[index 2^level, (index + 1) 2^level)`` and is the :func:`_chan_merge` of its two children
+    (its left child alone where the right one lies past the last block). Every node's value depends on
+    its blocks only, never on the order they arrived in, so any split of a study at block boundaries,
+    merged, and any resume give the whole study's root bit for bit.
+
+    Attributes:
+        block_size: runs per block (``chunk_size / devices``).
+        n_blocks: blocks of the whole study, ``ceil(n_runs / block_size)``.
+        nodes: ``((level, index, StudyMoments), ...)`` the complete nodes, ordered by first block;
+            at most ``2 log2(n_blocks)`` of them (one, the root, for a whole study).
+    """
+
+    block_size: int
+    n_blocks: int
+    nodes: tuple[tuple[int, int, StudyMoments], ...]
+
+
+def _tree_top(n_blocks: int) -> int:
+    """The root's level: the smallest ``L`` with ``2**L >= n_blocks``."""
+    return max(0, (n_blocks - 1).bit_length())
+
+
+def _insert_node(
+    nodes: dict[tuple[int, int], StudyMoments], level: int, index: int, m: StudyMoments, n_blocks: int
+) -> None:
+    """Add node ``(level, index)`` to ``nodes`` and combine upwards while its sibling is there (or empty)."""
+    top = _tree_top(n_blocks)
+    while level < top:
+        sibling = (level, index ^ 1)
+        if index % 2 == 0 and (index + 1) << level >= n_blocks:
+            pass  # the right sibling lies past the last block: the parent is this node
+        elif sibling in nodes:
+            other = nodes.pop(sibling)
+            m = _chan_merge(other, m) if index % 2 else _chan_merge(m, other)
+        else:
+            break
+        level, index = level + 1, index // 2
+    if (level, index) in nodes:
+        raise ValueError(f"blocks {index << level}..: summed twice (overlapping runs)")
+    nodes[(level, index)] = m
+
+
+def _block_sums(block_size: int, n_blocks: int, nodes: dict[tuple[int, int], StudyMoments]) -> BlockSums:
+    order = sorted(nodes, key=lambda li: li[1] << li[0])
+    return BlockSums(block_size, n_blocks, tuple((lv, ix, nodes[(lv, ix)]) for lv, ix in order))
+
+
+def _fold(sums: BlockSums, n_steps: int) -> StudyMoments:
+    """The accumulators of all of ``sums``' runs: the root, or its nodes combined left to right."""
+    m = StudyMoments.empty(n_steps)
+    for _, _, node in sums.nodes:
+        m = _chan_merge(m, node)
+    return m
+
+
 def _hist_index(v, xp):
     """Bin of each value: 0 underflow (incl. 0 and negatives), 1..bins, bins+1 overflow, bins+2 NaN."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -409,21 +474,31 @@ def _hist_index(v, xp):
     return xp.where(xp.isnan(v), _N_BINS + 2, idx)
 
 
-def _moments(scores: RunScores, mask, xp) -> StudyMoments:
-    """Accumulators of one batch of per-run scores ``(B, T)``; ``mask (B,)`` marks real runs.
+class _ShiftedSums(NamedTuple):
+    """Sums of one block of runs about a shift (the block's first run), as the device computes them.
+
+    No division, so no program's rounding of one (XLA may multiply by a reciprocal instead) enters
+    the block's sums: only additions and products of the runs' own scores. :func:`_centre` turns them
+    into :class:`StudyMoments` on the host, in float64.
+    """
+
+    n: Any  # () real runs
+    shift: Any  # (S, T) the first run's scores
+    s1: Any  # (S, T) Σ_i (x_i - shift)
+    s2: Any  # (S, T) Σ_i (x_i - shift)²
+    sq_gram: Any  # (T, T) Σ_i (e_i - shift)(e_i - shift)^T of the squared error
+    position_sq_gram: Any  # (T, T) the same for the position squared error
+    hist: Any
+    n_flagged_runs: Any
+
+
+def _shifted_sums(scores: RunScores, mask, xp) -> _ShiftedSums:
+    """:class:`_ShiftedSums` of one batch of per-run scores ``(B, T)``; ``mask (B,)`` marks real runs.
 
     ``xp`` is :mod:`jax.numpy` inside the compiled chunk or :mod:`numpy` on the host.
     """
     dtype = scores.sq_error.dtype
     m = mask[:, None]
-    n = xp.sum(mask.astype(dtype))
-
-    def stats(x):
-        x = x.astype(dtype)
-        mean = xp.where(m, x, 0).sum(0) / n
-        dev = xp.where(m, x - mean, 0)
-        return mean, dev
-
     cols = [
         scores.sq_error,
         scores.position_sq_error,
@@ -433,10 +508,9 @@ def _moments(scores: RunScores, mask, xp) -> StudyMoments:
         scores.cost,
         scores.flags,
     ]
-    out = [stats(c) for c in cols]
-    means = xp.stack([o[0] for o in out])
-    m2 = xp.stack([(o[1] ** 2).sum(0) for o in out])
-    dev_sq, dev_psq = out[0][1], out[1][1]
+    x = xp.stack([cast(Array, c).astype(dtype) for c in cols])  # (S, B, T)
+    shift = xp.where(mask[0], x[:, 0], 0)
+    dev = xp.where(m[None], x - shift[:, None], 0)
     hists = []
     for v in (scores.nees, xp.sqrt(scores.position_sq_error.astype(dtype))):
         idx = _hist_index(v, xp)
@@ -452,21 +526,35 @@ def _moments(scores: RunScores, mask, xp) -> StudyMoments:
         gram = lambda a: a.T @ a  # noqa: E731
     else:
         gram = lambda a: jnp.matmul(a.T, a, precision=jax.lax.Precision.HIGHEST)  # noqa: E731
-    return StudyMoments(
-        xp.sum(mask.astype(xp.int32)), means, m2, gram(dev_sq), gram(dev_psq), xp.stack(hists), flagged
+    i_sq, i_psq = SCORE_NAMES.index("sq_error"), SCORE_NAMES.index("position_sq_error")
+    return _ShiftedSums(
+        xp.sum(mask.astype(xp.int32)),
+        shift,
+        dev.sum(1),
+        (dev * dev).sum(1),
+        gram(dev[i_sq]),
+        gram(dev[i_psq]),
+        xp.stack(hists),
+        flagged,
     )
 
 
-def _to_host(m: StudyMoments) -> StudyMoments:
+def _centre(b: _ShiftedSums) -> StudyMoments:
+    """The :class:`StudyMoments` of host :class:`_ShiftedSums` (float64; elementwise, so every process
+    computes the same bits)."""
     f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    n = int(b.n)
+    s1 = f64(b.s1)
+    c = s1 / max(n, 1)  # the mean's offset from the shift
+    i_sq, i_psq = SCORE_NAMES.index("sq_error"), SCORE_NAMES.index("position_sq_error")
     return StudyMoments(
-        np.asarray(m.n, np.int64),
-        f64(m.mean),
-        f64(m.m2),
-        f64(m.sq_cross),
-        f64(m.position_sq_cross),
-        np.asarray(m.hist, np.int64),
-        np.asarray(m.n_flagged_runs, np.int64),
+        np.asarray(n, np.int64),
+        f64(b.shift) + c,
+        f64(b.s2) - s1 * c,
+        f64(b.sq_gram) - np.outer(s1[i_sq], c[i_sq]),
+        f64(b.position_sq_gram) - np.outer(s1[i_psq], c[i_psq]),
+        np.asarray(b.hist, np.int64),
+        np.asarray(b.n_flagged_runs, np.int64),
     )
 
 
@@ -545,6 +633,8 @@ class MonteCarloResult(NamedTuple):
         compile_s, run_s: seconds of compilation (the filter's program, plus the simulation's when
             this study compiled it: see "Streaming" above) and of execution; ``resumed_runs``: runs
             taken from a checkpoint.
+        sums: the :class:`BlockSums` that ``moments`` folds (what :func:`merge` combines, bit for
+            bit); ``None`` for a result of :func:`summarize`.
     """
 
     rmse: np.ndarray
@@ -570,6 +660,7 @@ class MonteCarloResult(NamedTuple):
     compile_s: float = 0.0
     run_s: float = 0.0
     resumed_runs: int = 0
+    sums: BlockSums | None = None
 
     def to_json(self) -> dict:
         """JSON-ready summary (no per-run data; NaN / inf as ``None``)."""
@@ -599,12 +690,9 @@ class MonteCarloResult(NamedTuple):
         return json_safe(out)
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the result to ``path`` (``.npz``: accumulators, kept runs, a JSON header; no pickle)."""
-        arrays = {f"moments.{k}": np.asarray(v) for k, v in self.moments._asdict().items()}
-        if self.scores is not None:
-            arrays.update(
-                {f"scores.{k}": np.asarray(v) for k, v in self.scores._asdict().items() if v is not None}
-            )
+        """Write the result to ``path`` (``.npz``: accumulators, block sums, kept runs, a JSON header
+        and a sha256 checksum of all of it; no pickle)."""
+        arrays = _pack(self.moments, self.sums, self.scores)
         meta = {
             "runs": list(self.runs),
             "config": self.config,
@@ -614,7 +702,7 @@ class MonteCarloResult(NamedTuple):
             "ise_tracked": not np.isnan(self.mean_ise),
         }
         arrays["meta"] = np.asarray(json.dumps(json_safe(meta)))
-        _atomic_savez(path, arrays)
+        _write_npz(path, arrays)
 
     @staticmethod
     def load(path: str | os.PathLike) -> MonteCarloResult:
@@ -623,12 +711,15 @@ class MonteCarloResult(NamedTuple):
 
 
 def load_result(path: str | os.PathLike) -> MonteCarloResult:
-    """Read a :class:`MonteCarloResult` written by :meth:`MonteCarloResult.save` (no pickle)."""
-    with np.load(path, allow_pickle=False) as f:
-        meta = json.loads(str(f["meta"]))
-        moments = StudyMoments(**{k: f[f"moments.{k}"] for k in StudyMoments._fields})
-        kept = {k[len("scores.") :]: f[k] for k in f.files if k.startswith("scores.")}
-    scores = RunScores(**kept) if kept else None
+    """Read a :class:`MonteCarloResult` written by :meth:`MonteCarloResult.save` (no pickle).
+
+    Raises:
+        ValueError: naming ``path`` and the cause, when the file is missing, truncated, corrupt
+            (checksum) or not a saved result.
+    """
+    f = _read_npz(path, "result", required=("meta",))
+    meta = json.loads(str(f["meta"]))
+    moments, sums, scores = _unpack(f)
     return _finalize(
         moments,
         runs=tuple(meta["runs"]),
@@ -638,7 +729,109 @@ def load_result(path: str | os.PathLike) -> MonteCarloResult:
         run_s=meta["run_s"] or 0.0,
         resumed_runs=meta["resumed_runs"],
         ise_tracked=meta.get("ise_tracked", True),
+        sums=sums,
     )
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def _pack(moments: StudyMoments, sums: BlockSums | None, scores: RunScores | None) -> dict[str, np.ndarray]:
+    """The arrays of a result or checkpoint file (``moments.*``, ``sums.*`` stacked by node, ``scores.*``)."""
+    arrays = {f"moments.{k}": np.asarray(v) for k, v in moments._asdict().items()}
+    if sums is not None:
+        arrays["sums.block_size"] = np.asarray(sums.block_size, np.int64)
+        arrays["sums.n_blocks"] = np.asarray(sums.n_blocks, np.int64)
+        arrays["sums.level"] = np.asarray([lv for lv, _, _ in sums.nodes], np.int64)
+        arrays["sums.index"] = np.asarray([ix for _, ix, _ in sums.nodes], np.int64)
+        for k in StudyMoments._fields:
+            arrays[f"sums.{k}"] = np.stack([np.asarray(getattr(m, k)) for _, _, m in sums.nodes])
+    if scores is not None:
+        arrays.update({f"scores.{k}": np.asarray(v) for k, v in scores._asdict().items() if v is not None})
+    return arrays
+
+
+def _unpack(f: dict[str, np.ndarray]) -> tuple[StudyMoments, BlockSums | None, RunScores | None]:
+    moments = StudyMoments(**{k: f[f"moments.{k}"] for k in StudyMoments._fields})
+    sums = None
+    if "sums.level" in f:
+        nodes = tuple(
+            (int(lv), int(ix), StudyMoments(**{k: f[f"sums.{k}"][j] for k in StudyMoments._fields}))
+            for j, (lv, ix) in enumerate(zip(f["sums.level"], f["sums.index"]))
+        )
+        sums = BlockSums(int(f["sums.block_size"]), int(f["sums.n_blocks"]), nodes)
+    kept: dict[str, Any] = {k[len("scores.") :]: f[k] for k in f if k.startswith("scores.")}
+    return moments, sums, (RunScores(**kept) if kept else None)
+
+
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 of every array's name, dtype, shape and bytes (in name order; ``checksum`` itself excluded)."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        if name == "checksum":
+            continue
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _tmp_path(path: str) -> str:
+    return f"{path}.tmp-{os.getpid()}.npz"
+
+
+def _remove_stale_tmp(path: str | os.PathLike) -> None:
+    """Remove the temporary files that writes to ``path`` left behind (a write killed half-way)."""
+    import glob
+
+    for tmp in glob.glob(glob.escape(os.fspath(path)) + ".tmp-*.npz"):
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+
+
+def _write_npz(path: str | os.PathLike, arrays: dict) -> None:
+    """Write ``arrays`` and their checksum atomically: a temporary file, fsync, :func:`os.replace`."""
+    path = os.fspath(path)
+    arrays = dict(arrays, checksum=np.asarray(_checksum(arrays)))
+    tmp = _tmp_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+
+
+def _read_npz(path: str | os.PathLike, what: str, required: Sequence[str] = ()) -> dict[str, np.ndarray]:
+    """Every array of a file written by :func:`_write_npz`, its checksum verified (files written
+    before gmjax kept checksums have none: the caller decides whether to accept them).
+
+    Raises:
+        ValueError: naming the file and the cause (missing, not an ``.npz``, truncated, checksum
+            mismatch, ``required`` arrays missing).
+    """
+    name = os.fspath(path)
+    try:
+        with np.load(name, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+    except FileNotFoundError:
+        raise ValueError(f"{what}: {name!r} does not exist") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+        cause = "empty" if os.path.exists(name) and os.path.getsize(name) == 0 else "truncated or corrupt"
+        raise ValueError(
+            f"{what}: {name!r} is {cause} and cannot be read ({type(e).__name__}: {e})"
+        ) from None
+    missing = [k for k in required if k not in arrays]
+    if missing:
+        raise ValueError(f"{what}: {name!r} is not a gmjax Monte Carlo {what} file (no {', '.join(missing)})")
+    if "checksum" in arrays and str(arrays["checksum"]) != _checksum(arrays):
+        raise ValueError(
+            f"{what}: {name!r} is corrupt: its contents do not match the checksum it was written with"
+        )
+    return arrays
 
 
 def json_safe(obj: Any) -> Any:
@@ -668,6 +861,7 @@ def _finalize(
     run_s: float = 0.0,
     resumed_runs: int = 0,
     ise_tracked: bool = True,
+    sums: BlockSums | None = None,
 ) -> MonteCarloResult:
     n = int(m.n)
     i = SCORE_NAMES.index
@@ -702,6 +896,7 @@ def _finalize(
         compile_s=float(compile_s),
         run_s=float(run_s),
         resumed_runs=int(resumed_runs),
+        sums=sums,
     )
 
 
@@ -726,7 +921,7 @@ def summarize(
         col(scores.n_components, 1.0),
         col(scores.ise),
     )
-    moments = _to_host(_moments(s, np.ones(N, bool), np))
+    moments = _centre(_shifted_sums(s, np.ones(N, bool), np))
     return _finalize(
         moments,
         runs=(0, N),
@@ -737,15 +932,27 @@ def summarize(
     )
 
 
-def merge(results: Sequence[MonteCarloResult]) -> MonteCarloResult:
-    """Combine results of disjoint run ranges of one study into the result of their union.
+_SAME_STUDY = ("key", "filter", "scenario", "dtype", "n_runs")  # what makes results parts of one study
+_SAME_SUMS = ("block_size", "gmjax_version", "jax_version")  # and what makes their sums combine exactly
 
-    The accumulators merge exactly (Chan's update in float64), so the numbers equal one study over
-    all the runs to the rounding of the sums. Kept runs are concatenated in run order.
+
+def merge(results: Sequence[MonteCarloResult], *, exact: bool = True) -> MonteCarloResult:
+    """Combine results of adjoining run ranges of one study into the result of their union.
+
+    With ``exact=True`` (the default) the parts' :class:`BlockSums` are combined in the study's one
+    fixed tree, so the merged numbers are bit-identical to one study over all the runs, however the
+    runs were split (at block boundaries; :func:`monte_carlo` refuses ranges off them) and in whatever
+    order the parts come. ``exact=False`` also takes results without block sums (of :func:`summarize`,
+    or saved by an older gmjax) or with different block sizes or versions, and combines their
+    accumulators in run order: equal to the whole study to rounding only. Kept runs are concatenated
+    in run order (each part's first ``keep_runs``).
 
     Raises:
-        ValueError: no results, overlapping ranges, or results of different studies (key, filter,
-            scenario or dtype differ).
+        ValueError: no results; overlapping ranges; a gap (a merged result never has a hole: the
+            message names the missing runs); parts of different studies (``key``, ``filter``,
+            ``scenario``, ``dtype`` or ``n_runs`` differ) or, with ``exact``, whose sums do not
+            combine bit for bit (``block_size``, ``gmjax_version`` or ``jax_version`` differ, or no
+            block sums): each message names the field.
     """
     results = sorted(results, key=lambda r: r.runs[0])
     if not results:
@@ -753,32 +960,59 @@ def merge(results: Sequence[MonteCarloResult]) -> MonteCarloResult:
     for a, b in zip(results, results[1:]):
         if b.runs[0] < a.runs[1]:
             raise ValueError(f"results: run ranges {a.runs} and {b.runs} overlap")
+        if b.runs[0] > a.runs[1]:
+            raise ValueError(
+                f"results: runs {a.runs[1]}..{b.runs[0] - 1} are missing between the parts {a.runs} and "
+                f"{b.runs}; run runs=range({a.runs[1]}, {b.runs[0]}) of the study and merge it too"
+            )
+    fields = _SAME_STUDY + (_SAME_SUMS if exact else ())
     ref = results[0].config or {}
     for r in results[1:]:
         cfg = r.config or {}
-        for field in ("key", "filter", "scenario", "dtype", "n_runs"):
+        for field in fields:
             if ref.get(field) != cfg.get(field):
+                what = "different studies" if field in _SAME_STUDY else "sums that do not combine exactly"
+                hint = "" if field in _SAME_STUDY else "; merge(..., exact=False) combines them to rounding"
                 raise ValueError(
-                    f"results: different studies ({field} differs: {ref.get(field)!r} vs {cfg.get(field)!r})"
+                    f"results: {what} ({field} differs: {ref.get(field)!r} in {results[0].runs} vs "
+                    f"{cfg.get(field)!r} in {r.runs}){hint}"
                 )
-    m = results[0].moments
-    for r in results[1:]:
-        m = _chan_merge(m, r.moments)
+    n_steps = results[0].moments.mean.shape[1]
+    sums = None
+    if exact:
+        for r in results:
+            if r.sums is None:
+                raise ValueError(
+                    f"results: the part with runs {r.runs} has no block sums (a result of summarize, or saved "
+                    "by an older gmjax), so it cannot be merged bit for bit; merge(..., exact=False) "
+                    "combines its accumulators to rounding"
+                )
+        block, n_blocks = results[0].sums.block_size, results[0].sums.n_blocks  # type: ignore[union-attr]
+        nodes: dict[tuple[int, int], StudyMoments] = {}
+        for r in results:
+            for level, index, node in r.sums.nodes:  # type: ignore[union-attr]
+                _insert_node(nodes, level, index, node, n_blocks)
+        sums = _block_sums(block, n_blocks, nodes)
+        m = _fold(sums, n_steps)
+    else:
+        m = StudyMoments.empty(n_steps)
+        for r in results:
+            m = _chan_merge(m, r.moments)
     kept = [r.scores for r in results if r.scores is not None]
     scores = None
     if kept:
         scores = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *kept)
-    config = dict(
-        ref, runs=[results[0].runs[0], results[-1].runs[1]], merged_from=[list(r.runs) for r in results]
-    )
+    runs = (results[0].runs[0], results[-1].runs[1])
+    config = dict(ref, runs=list(runs), merged_from=[list(r.runs) for r in results], exact=exact)
     return _finalize(
         m,
-        runs=(results[0].runs[0], results[-1].runs[1]),
+        runs=runs,
         scores=scores,
         config=config,
         compile_s=sum(r.compile_s for r in results),
         run_s=sum(r.run_s for r in results),
         ise_tracked=not any(np.isnan(r.mean_ise) for r in results),
+        sums=sums,
     )
 
 
@@ -821,6 +1055,7 @@ def _study_config(
         "n_runs": n_runs,
         "runs": [runs.start, runs.stop],
         "chunk_size": chunk,
+        "block_size": chunk // len(devices),
         "devices": {"count": len(devices), "platform": devices[0].platform, "processes": jax.process_count()},
         "keep_runs": keep_runs,
         "keep_trajectories": keep_traj,
@@ -835,49 +1070,60 @@ def _study_config(
     }
 
 
+_NOT_IN_CHECKPOINT_IDENTITY = ("chunk_size", "devices")  # the numbers depend on block_size, not on these
+
+
+def _checkpoint_identity(config: dict) -> dict:
+    """What a checkpoint must agree on to be resumed: everything but how the blocks were scheduled."""
+    return {k: v for k, v in config.items() if k not in _NOT_IN_CHECKPOINT_IDENTITY}
+
+
 def _config_hash(config: dict) -> str:
-    return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
+    return hashlib.sha256(json.dumps(_checkpoint_identity(config), sort_keys=True).encode()).hexdigest()
 
 
-def _atomic_savez(path: str | os.PathLike, arrays: dict) -> None:
-    path = os.fspath(path)
-    tmp = f"{path}.tmp-{os.getpid()}.npz"
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+class _Checkpoint(NamedTuple):
+    next_run: int
+    sums: BlockSums
+    kept: RunScores | None
 
 
-def _write_checkpoint(path, config: dict, next_run: int, moments: StudyMoments, kept: list) -> None:
-    arrays = {f"moments.{k}": np.asarray(v) for k, v in moments._asdict().items()}
-    if kept:
-        cat = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *kept)
-        arrays.update({f"scores.{k}": np.asarray(v) for k, v in cat._asdict().items() if v is not None})
+def _write_checkpoint(path, config: dict, next_run: int, sums: BlockSums, kept: list) -> None:
+    cat = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *kept) if kept else None
+    arrays = _pack(_fold(sums, config["scenario"]["n_steps"]), sums, cat)
     arrays["config_hash"] = np.asarray(_config_hash(config))
     arrays["config"] = np.asarray(json.dumps(config, sort_keys=True))
     arrays["next_run"] = np.asarray(next_run, np.int64)
-    _atomic_savez(path, arrays)
+    _write_npz(path, arrays)
 
 
-def _read_checkpoint(path, config: dict) -> tuple[int, StudyMoments, RunScores | None]:
+_RESTART = "delete it or pass resume=False to start the study again"
+
+
+def _read_checkpoint(path, config: dict) -> _Checkpoint:
+    name = os.fspath(path)
     try:
-        f = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"checkpoint: cannot read {os.fspath(path)!r} ({e})") from None
-    with f:
-        if "config_hash" not in f.files:
-            raise ValueError(f"checkpoint: {os.fspath(path)!r} is not a gmjax Monte Carlo checkpoint")
-        if str(f["config_hash"]) != _config_hash(config):
-            old = json.loads(str(f["config"]))
-            diff = sorted(k for k in set(old) | set(config) if old.get(k) != config.get(k))
-            raise ValueError(
-                f"checkpoint: {os.fspath(path)!r} was written by another study configuration "
-                f"(differs in: {', '.join(diff)}); delete it or pass another path"
-            )
-        moments = StudyMoments(**{k: f[f"moments.{k}"] for k in StudyMoments._fields})
-        kept = {k[len("scores.") :]: f[k] for k in f.files if k.startswith("scores.")}
-        return int(f["next_run"]), moments, (RunScores(**kept) if kept else None)
+        f = _read_npz(path, "checkpoint", required=("config_hash", "config", "next_run"))
+    except ValueError as e:
+        raise ValueError(f"{e}; {_RESTART}") from None
+    old = json.loads(str(f["config"]))
+    if old.get("gmjax_version") != config["gmjax_version"] or "checksum" not in f:
+        by = "an older gmjax" if "checksum" not in f else f"gmjax {old.get('gmjax_version')}"
+        raise ValueError(
+            f"checkpoint: {name!r} was written by {by}, this is gmjax {config['gmjax_version']} "
+            f"(a checkpoint resumes bit for bit only with the gmjax that wrote it); {_RESTART}"
+        )
+    if str(f["config_hash"]) != _config_hash(config):
+        now, then = _checkpoint_identity(config), _checkpoint_identity(old)
+        diff = sorted(k for k in set(now) | set(then) if now.get(k) != then.get(k))
+        raise ValueError(
+            f"checkpoint: {name!r} was written by another study configuration "
+            f"(differs in: {', '.join(diff)}); {_RESTART}, or pass another path"
+        )
+    _, sums, kept = _unpack(f)
+    if sums is None:  # pragma: no cover - every checkpoint with a checksum has block sums
+        raise ValueError(f"checkpoint: {name!r} holds no block sums; {_RESTART}")
+    return _Checkpoint(int(f["next_run"]), sums, kept)
 
 
 # ----------------------------------------------------------------------------- the driver
@@ -963,27 +1209,52 @@ def _chunk_program(
     keep_traj: bool,
     mesh: jax.sharding.Mesh,
 ):
-    """jit of ``(_SimulatedRun batch, n_valid) -> (StudyMoments, RunScores | None)`` for ``chunk`` runs
-    (the output of :func:`_simulation_program`), and a dict filled when it is traced:
-    ``"ise_tracked"``, whether the filter reports ``extra["ise"]``."""
+    """jit of ``(_SimulatedRun batch, valid (chunk,) bool) -> (StudyMoments, RunScores | None)`` for
+    ``chunk`` runs (the output of :func:`_simulation_program`), and a dict filled when it is traced:
+    ``"ise_tracked"``, whether the filter reports ``extra["ise"]``.
+
+    Each device filters and sums its own block of ``chunk / devices`` runs (a ``shard_map``): the
+    moments come back stacked, one block per device (leading axis ``devices``), never reduced across
+    devices, so a block's sums do not depend on how many devices or processes shared the chunk.
+    """
     P = jax.sharding.PartitionSpec
     meta: dict[str, bool] = {}
-    runs_sharding = jax.sharding.NamedSharding(mesh, P("runs"))
-    replicated = jax.sharding.NamedSharding(mesh, P())
 
-    def fn(sims, n_valid):
+    def per_device(sims, valid):
         def one(sim):
             r = _filter_simulated(filter, scenario, sim, params)
             meta["ise_tracked"] = "ise" in r.infos.extra
             return score_filtered(r, keep_trajectories=keep_traj)
 
-        scores = jax.vmap(one)(sims)
-        mask = jnp.arange(chunk, dtype=jnp.uint32) < n_valid
-        moments = _moments(scores, mask, jnp)
-        return moments, (scores if keep else None)
+        # the barrier materialises every run's scores before they are summed: fused into the sums, the
+        # scores' last operations round differently from program to program (a fused multiply-add)
+        scores = jax.lax.optimization_barrier(jax.vmap(one)(sims))
+        sums = jax.tree_util.tree_map(lambda a: a[None], _shifted_sums(scores, valid, jnp))
+        return (sums, scores) if keep else sums
 
-    out_shardings = (replicated, runs_sharding) if keep else (replicated, None)
-    return jax.jit(fn, out_shardings=out_shardings), meta
+    out_specs = (P("runs"), P("runs")) if keep else P("runs")
+    sharded = jax.shard_map(
+        per_device, mesh=mesh, in_specs=(P("runs"), P("runs")), out_specs=out_specs, check_vma=False
+    )
+
+    def fn(sims, valid):
+        out = sharded(sims, valid)
+        return out if keep else (out, None)
+
+    return _CachedProgram(jax.jit(fn)), meta
+
+
+_CHUNK_PROGRAMS = IdentityCache(maxsize=16)
+
+
+def _cached_chunk_program(filter, scenario, params, chunk, keep, keep_traj, mesh):
+    """:func:`_chunk_program`, kept per filter, scenario and params object, chunk size and mesh, so the
+    parts of a study run in one process (or its reruns) compile once."""
+    return _CHUNK_PROGRAMS.get(
+        (filter, scenario, params),
+        lambda: _chunk_program(filter, scenario, params, chunk, keep, keep_traj, mesh),
+        tag=(chunk, keep, keep_traj, mesh),
+    )
 
 
 def _host(x) -> np.ndarray:
@@ -995,6 +1266,32 @@ def _host(x) -> np.ndarray:
     from jax.experimental import multihost_utils
 
     return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+
+def default_chunk_size(n_runs: int) -> int:
+    """The chunk a study of ``n_runs`` runs gets by default: the largest of 1, 2, 5, 10, 20, 50, ...,
+    1000 that is at most ``ceil(n_runs / 10)`` (so the progress bar moves 10 to 25 times, and round
+    splits of the study, e.g. halves of 10^6 runs, fall on block boundaries)."""
+    target = min(1000, max(1, math.ceil(n_runs / 10)))
+    return max(c for c in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if c <= target)
+
+
+def _as_key(key: Any) -> PRNGKey:
+    """A typed PRNG key from ``key`` (a typed key, or raw ``uint32`` key data); a clear error otherwise."""
+    if isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        if key.shape != ():
+            raise ValueError(f"key: expected one PRNG key, got an array of {key.shape} keys")
+        return key
+    shape = np.shape(key)
+    dtype = getattr(key, "dtype", None)
+    if dtype is not None and np.dtype(dtype) == np.uint32 and len(shape) == 1:
+        try:
+            return jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"key: {shape} uint32 array is not key data of the default PRNG ({e})") from None
+    raise ValueError(
+        f"key: expected a PRNG key such as jax.random.key(0), got {type(key).__name__} {key!r:.60}"
+    )
 
 
 def monte_carlo(
@@ -1010,6 +1307,7 @@ def monte_carlo(
     keep_runs: int | None = None,
     keep_trajectories: bool = False,
     checkpoint: str | os.PathLike | None = None,
+    resume: bool = True,
     progress: bool | str = True,
 ) -> MonteCarloResult:
     """Run ``n_runs`` independent simulations of ``scenario`` through ``filter`` and score them.
@@ -1018,20 +1316,27 @@ def monte_carlo(
         filter: any :class:`~gmjax.filters.Filter` (GSF, local filter, PF, IMM, ...).
         scenario: the :class:`~gmjax.models.Scenario` (true simulator + the model the filter uses).
         n_runs: ``N >= 1``, the size of the whole study (fixes nothing but the valid run indices).
-        key: PRNG key; run ``i`` uses :func:`run_key` ``(key, i)`` (``= jax.random.split(key, N)[i]``).
-        chunk_size: runs per compiled batch (default ``ceil(len(runs) / 10)``, between 1 and 1024, so
-            the progress bar moves about ten times); rounded up to a multiple of the device count.
-            Memory is ``O(chunk_size T + T²)``.
+        key: PRNG key (``jax.random.key(seed)``, or legacy ``uint32`` key data); run ``i`` uses
+            :func:`run_key` ``(key, i)`` (``= jax.random.split(key, N)[i]``).
+        chunk_size: runs per compiled batch (default :func:`default_chunk_size` ``(n_runs)``: about a
+            tenth of the study, at most 1000); rounded up to a multiple of the device count. Each device
+            sums a block of ``chunk_size / devices`` runs; the numbers depend on that block size, never on
+            the split, the resume or the devices (module docstring, "Determinism"). Memory is
+            ``O(chunk_size T + T² log2(N / block))``.
         devices: devices to shard each chunk's run axis over (default ``jax.devices()``: under
             ``jax.distributed`` every process's devices).
-        runs: the run indices to do (default ``range(n_runs)``), a ``range`` with step 1; parts of one
-            study :func:`merge` into the whole.
+        runs: the run indices to do (default ``range(n_runs)``), a ``range`` with step 1 whose start and
+            stop lie on the study's block grid (multiples of the block size, or ``stop = n_runs``);
+            parts of one study :func:`merge` into the whole bit for bit.
         params: a pytree replacing ``filter.params``.
         keep_runs: keep the per-run :class:`RunScores` of the first ``keep_runs`` runs of ``runs``
             (default 0, or all runs with ``keep_trajectories``).
         keep_trajectories: also keep the kept runs' ``(k, T, d)`` estimates and truths.
         checkpoint: path of an ``.npz`` checkpoint to resume from and update after every chunk (under
-            ``jax.distributed``, process 0 writes it: put it where every process can read it).
+            ``jax.distributed``, process 0 writes it: put it where every process can read it). Its
+            temporary files (of a write that was killed) are removed on start and finish.
+        resume: with ``checkpoint``, continue from an existing checkpoint file (default); ``False``
+            starts the study again and overwrites it.
         progress: compilation notice and a progress bar (runs/s, ETA) on stderr; a string labels the
             bar (default label: the scenario's name); ``False``: quiet.
 
@@ -1039,8 +1344,9 @@ def monte_carlo(
         A :class:`MonteCarloResult`.
 
     Raises:
-        ValueError: bad arguments (naming them), a filter whose dtype differs from the scenario's, or
-            a checkpoint written by a different configuration.
+        ValueError: bad arguments (naming them), a filter whose dtype differs from the scenario's, a
+            range off the block grid, or a checkpoint that is corrupt, of another gmjax or written by a
+            different configuration (naming the file and what to do).
     """
     if isinstance(n_runs, bool) or not isinstance(n_runs, (int, np.integer)) or n_runs < 1:
         raise ValueError(f"n_runs: must be a positive int, got {n_runs!r}")
@@ -1063,24 +1369,36 @@ def monte_carlo(
         raise ValueError(f"keep_runs: must be a non-negative int, got {keep_runs!r}")
     keep_runs = min(int(keep_runs), len(runs))
     dtype = _validate(filter, scenario, params)
-    if not jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
-        key = jax.random.wrap_key_data(jnp.asarray(key, jnp.uint32))
+    key = _as_key(key)
     devices = list(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("devices: empty device list")
     n_dev = len(devices)
-    chunk = min(1024, max(1, math.ceil(len(runs) / 10))) if chunk_size is None else int(chunk_size)
+    chunk = default_chunk_size(n_runs) if chunk_size is None else int(chunk_size)
     chunk = n_dev * math.ceil(chunk / n_dev)  # every device gets the same share
+    block = chunk // n_dev
+    if runs.start % block or (runs.stop % block and runs.stop != n_runs):
+        lo, hi = runs.start - runs.start % block, runs.stop - runs.stop % block
+        raise ValueError(
+            f"runs: {runs!r} is off the study's block grid (blocks of {block} runs: chunk_size {chunk} on "
+            f"{n_dev} device(s)); start and stop must be multiples of {block} (or stop = n_runs = {n_runs}), "
+            f"e.g. range({lo}, {hi if hi > lo else lo + block}), so that the parts merge bit for bit"
+        )
     config = _study_config(
         filter, scenario, params, key, n_runs, runs, chunk, devices, keep_runs, keep_trajectories, dtype
     )
 
-    moments = StudyMoments.empty(scenario.n_steps)
+    n_blocks = math.ceil(n_runs / block)
+    nodes: dict[tuple[int, int], StudyMoments] = {}
     kept: list[RunScores] = []
     next_run = runs.start
-    if checkpoint is not None and os.path.exists(checkpoint):
-        next_run, moments, kept_prev = _read_checkpoint(checkpoint, config)
-        kept = [] if kept_prev is None else [kept_prev]
+    writer = checkpoint is not None and jax.process_index() == 0
+    if writer:
+        _remove_stale_tmp(cast(str, checkpoint))
+    if checkpoint is not None and resume and os.path.exists(checkpoint):
+        saved = _read_checkpoint(checkpoint, config)
+        next_run, nodes = saved.next_run, {(lv, ix): m for lv, ix, m in saved.sums.nodes}
+        kept = [] if saved.kept is None else [saved.kept]
     resumed = next_run - runs.start
 
     label = progress if isinstance(progress, str) else (scenario.name or "study")
@@ -1089,11 +1407,16 @@ def monte_carlo(
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     runs_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("runs"))
     simulation = _simulation_program(scenario, chunk, mesh)
-    program, meta = _chunk_program(filter, scenario, params, chunk, keep_runs > 0, keep_trajectories, mesh)
+    program, meta = _cached_chunk_program(
+        filter, scenario, params, chunk, keep_runs > 0, keep_trajectories, mesh
+    )
 
-    def put(x):
+    def put(x, sharding=replicated):
         x = np.asarray(x)
-        return jax.make_array_from_callback(x.shape, replicated, lambda _: x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda i: x[i])
+
+    def valid_runs(n_valid: int) -> jax.Array:  # (chunk,) bool, sharded as the runs: which are real
+        return put(np.arange(chunk) < n_valid, runs_sharding)
 
     key_arr = jax.random.wrap_key_data(put(jax.random.key_data(key)), impl=jax.random.key_impl(key))
     compile_s = 0.0
@@ -1103,35 +1426,41 @@ def monte_carlo(
         lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=runs_sharding), sims_shape
     )
     if next_run >= runs.stop:
-        program.trace(sims_shape, put(np.uint32(0)))  # fills meta; nothing to run
+        program.jitted.trace(sims_shape, valid_runs(0))  # fills meta; nothing to run
         bar.update(0)
     else:
         with bar.compiling(f"{chunk} runs per chunk"):
             simulate_chunk, compile_s = simulation.compile(key_arr, put(np.uint32(0)))
-            t_c = time.perf_counter()
-            compiled = program.lower(sims_shape, put(np.uint32(0))).compile()
-            compile_s += time.perf_counter() - t_c
+            compiled, filter_compile_s = program.compile(sims_shape, valid_runs(0))
+            compile_s += filter_compile_s
         t0 = time.perf_counter()
         while next_run < runs.stop:
             n_valid = min(chunk, runs.stop - next_run)
             sims = simulate_chunk(key_arr, put(np.uint32(next_run)))
-            out_m, out_s = compiled(sims, put(np.uint32(n_valid)))
-            moments = _chan_merge(moments, _to_host(jax.tree_util.tree_map(_host, out_m)))
+            out_m, out_s = compiled(sims, valid_runs(n_valid))
+            blocks = jax.tree_util.tree_map(_host, out_m)  # one block per device
+            for d in range(n_dev):
+                if blocks.n[d] > 0:
+                    leaf = _centre(_ShiftedSums(*(a[d] for a in blocks)))
+                    _insert_node(nodes, 0, next_run // block + d, leaf, n_blocks)
             n_keep = runs.start + keep_runs - next_run
             if n_keep > 0:
                 host_s = jax.tree_util.tree_map(_host, out_s)
                 n_take = min(n_keep, n_valid)
                 kept.append(jax.tree_util.tree_map(lambda a, n=n_take: a[:n], host_s))
             next_run += n_valid
-            if checkpoint is not None and jax.process_index() == 0:
-                _write_checkpoint(checkpoint, config, next_run, moments, kept)
+            if writer:
+                _write_checkpoint(checkpoint, config, next_run, _block_sums(block, n_blocks, nodes), kept)
             bar.update(n_valid)
     run_s = time.perf_counter() - t0
+    if writer:
+        _remove_stale_tmp(cast(str, checkpoint))
     scores = None
     if keep_runs:
         scores = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *kept) if len(kept) > 1 else kept[0]
+    sums = _block_sums(block, n_blocks, nodes)
     return _finalize(
-        moments,
+        _fold(sums, scenario.n_steps),
         runs=(runs.start, runs.stop),
         scores=scores,
         config=config,
@@ -1139,4 +1468,5 @@ def monte_carlo(
         run_s=run_s,
         resumed_runs=resumed,
         ise_tracked=meta["ise_tracked"],
+        sums=sums,
     )

@@ -131,32 +131,121 @@ def test_histogram_median_is_within_its_stated_accuracy():
     assert np.isnan(with_nan.median_nees)
 
 
-def test_same_chunk_size_is_bit_identical_across_splits_and_kept_runs():
+def assert_same_study(merged, whole):
+    """Every number and every accumulator bit for bit, and the block sums' nodes."""
+    assert_bit_identical(merged, whole)
+    assert merged.runs == whole.runs and merged.n_runs == whole.n_runs
+    assert len(merged.sums.nodes) == len(whole.sums.nodes)
+    for (la, ia, ma), (lb, ib, mb) in zip(merged.sums.nodes, whole.sums.nodes):
+        assert (la, ia) == (lb, ib)
+        for x, y in zip(ma, mb):
+            np.testing.assert_array_equal(x, y)
+
+
+def test_splits_at_block_boundaries_merge_bit_identical_to_the_whole_study():
+    """Issue 48 item 1: 2 and 3 parts, in any order, give every field of the whole study bit for bit."""
     sc, filt = small_study()
-    whole = montecarlo.monte_carlo(
-        filt, sc, 10, jax.random.key(0), chunk_size=3, keep_runs=10, progress=False
+    key = jax.random.key(0)
+    study = lambda runs, keep: montecarlo.monte_carlo(  # noqa: E731
+        filt, sc, 23, key, chunk_size=3, runs=runs, keep_runs=keep, progress=False
     )
-    a = montecarlo.monte_carlo(
-        filt, sc, 10, jax.random.key(0), chunk_size=3, runs=range(0, 6), keep_runs=6, progress=False
+    whole = study(range(23), 23)
+    assert whole.sums.block_size == 3 and whole.sums.n_blocks == 8 and len(whole.sums.nodes) == 1
+    for bounds in ((0, 6, 23), (0, 9, 15, 23), (0, 3, 21, 23)):
+        parts = [study(range(a, b), b - a) for a, b in zip(bounds, bounds[1:])]
+        # per-run numbers: the same compiled chunk, so bit for bit
+        for x, *ys in zip(whole.scores, *(p.scores for p in parts)):
+            if x is not None:
+                np.testing.assert_array_equal(x, np.concatenate(ys))
+        for order in (parts, parts[::-1]):
+            assert_same_study(montecarlo.merge(order), whole)
+    # the merge of a merge is the same study too, and a part's own numbers are its runs'
+    a, b, c = (study(range(x, y), 0) for x, y in ((0, 9), (9, 15), (15, 23)))
+    assert_same_study(montecarlo.merge([montecarlo.merge([b, c]), a]), whole)
+    assert b.n_runs == 6 and b.runs == (9, 15)
+    np.testing.assert_allclose(b.rmse, np.sqrt(whole.scores.sq_error[9:15].mean(0)), rtol=1e-13)
+
+
+def test_merge_refuses_what_is_not_one_study():
+    """Issue 48 item 2: gaps, overlaps, other block sizes, keys, filters, scenarios, dtypes, versions."""
+    sc, filt = small_study()
+    key = jax.random.key(0)
+    part = lambda runs, **kw: montecarlo.monte_carlo(  # noqa: E731
+        kw.pop("filt", filt),
+        kw.pop("sc", sc),
+        20,
+        kw.pop("key", key),
+        runs=runs,
+        chunk_size=kw.pop("chunk_size", 5),
+        progress=False,
     )
-    b = montecarlo.monte_carlo(
-        filt, sc, 10, jax.random.key(0), chunk_size=3, runs=range(6, 10), keep_runs=4, progress=False
-    )
-    # per-run numbers: the same compiled chunk, so bit for bit
-    for x, y, z in zip(whole.scores, a.scores, b.scores):
-        if x is not None:
-            np.testing.assert_array_equal(x, np.concatenate([y, z]))
-    merged = montecarlo.merge([b, a])
-    assert merged.runs == (0, 10) and merged.n_runs == 10
-    assert_close(merged, whole, rtol=1e-13)  # the sums are grouped differently: rounding only
-    np.testing.assert_array_equal(merged.moments.hist, whole.moments.hist)
+    a, c = part(range(0, 5)), part(range(10, 20))
+    with pytest.raises(ValueError, match=r"runs 5..9 are missing .* run runs=range\(5, 10\)"):
+        montecarlo.merge([a, c])
     with pytest.raises(ValueError, match="overlap"):
         montecarlo.merge([a, a])
-    other = montecarlo.monte_carlo(
-        filt, sc, 10, jax.random.key(1), chunk_size=3, runs=range(6, 10), progress=False
+    with pytest.raises(
+        ValueError, match=r"sums that do not combine exactly .block_size differs: 5 in \(0, 10\) vs 10"
+    ):
+        montecarlo.merge([part(range(0, 10)), part(range(10, 20), chunk_size=10)])
+    cases = (
+        (part(range(5, 20), key=jax.random.key(1)), "different studies .key differs"),
+        (
+            part(
+                range(5, 20),
+                filt=filt._replace(
+                    params=jax.tree_util.tree_map(
+                        lambda x: x * 2 if jnp.issubdtype(x.dtype, jnp.floating) else x, filt.params
+                    )
+                ),
+            ),
+            "different studies .filter differs",
+        ),
+        (part(range(5, 20), sc=sc._replace(name="other")), "different studies .scenario differs"),
     )
-    with pytest.raises(ValueError, match="key"):
-        montecarlo.merge([a, other])
+    for other, match in cases:
+        with pytest.raises(ValueError, match=match):
+            montecarlo.merge([a, other])
+    b = part(range(5, 20))
+    assert montecarlo.merge([a, b]).n_runs == 20
+    newer = b._replace(config=dict(b.config, gmjax_version="9.9"))
+    with pytest.raises(ValueError, match="gmjax_version differs.*exact=False"):
+        montecarlo.merge([a, newer])
+    assert montecarlo.merge([a, newer], exact=False).config["exact"] is False
+    f32 = b._replace(config=dict(b.config, dtype="float32"))
+    with pytest.raises(ValueError, match="dtype differs"):
+        montecarlo.merge([a, f32], exact=False)
+    # a result without block sums (summarize) merges only to rounding, when asked
+    whole = part(range(20))
+    scores = jax.jit(lambda k: montecarlo.study_scores(filt, sc, 20, k))(key)
+    first5 = jax.tree_util.tree_map(lambda x: x[:5], scores)
+    s = montecarlo.summarize(first5)
+    with pytest.raises(ValueError, match="no block sums"):
+        montecarlo.merge([s._replace(config=a.config), b])
+    loose = montecarlo.merge([s._replace(config=a.config), b], exact=False)
+    assert loose.armse == pytest.approx(whole.armse, rel=1e-12)
+
+
+def test_runs_off_the_block_grid_are_refused():
+    sc, filt = small_study()
+    with pytest.raises(ValueError, match=r"off the study's block grid .blocks of 5 runs.*range\(5, 15\)"):
+        montecarlo.monte_carlo(
+            filt, sc, 20, jax.random.key(0), chunk_size=5, runs=range(7, 15), progress=False
+        )
+    with pytest.raises(ValueError, match="off the study's block grid"):
+        montecarlo.monte_carlo(
+            filt, sc, 20, jax.random.key(0), chunk_size=5, runs=range(5, 12), progress=False
+        )
+    # stop = n_runs is always on the grid; the default chunk makes round splits fall on it
+    assert [montecarlo.default_chunk_size(n) for n in (1, 20, 100, 499, 1000, 10**4, 10**6)] == [
+        1,
+        2,
+        10,
+        50,
+        100,
+        1000,
+        1000,
+    ]
 
 
 def test_chunk_sizes_agree_to_rounding():
@@ -212,8 +301,11 @@ def test_checkpoint_resumes_bit_identical_after_a_kill(tmp_path):
     with np.load(ckpt) as f:
         assert int(f["next_run"]) == 6  # two chunks of 3 done, the study killed mid-way
     sc, filt = small_study()
+    stale = tmp_path / "study.npz.tmp-999999.npz"  # what a kill during a write leaves behind
+    stale.write_bytes(b"PK\x03\x04 half a zip")
     resumed = eval(call, {"montecarlo": montecarlo, "filt": filt, "sc": sc, "jax": jax})
     assert resumed.resumed_runs == 6
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["study.npz"]  # no temporary file left
     fresh = montecarlo.monte_carlo(filt, sc, 14, jax.random.key(9), chunk_size=3, keep_runs=5, progress=False)
     assert_bit_identical(resumed, fresh)
     for x, y in zip(resumed.scores, fresh.scores):
@@ -224,7 +316,7 @@ def test_checkpoint_resumes_bit_identical_after_a_kill(tmp_path):
     assert again.resumed_runs == 14
     assert_bit_identical(again, fresh)
     # another configuration is refused, naming what differs
-    with pytest.raises(ValueError, match="checkpoint.*differs in: chunk_size"):
+    with pytest.raises(ValueError, match="checkpoint.*differs in: block_size.*resume=False"):
         montecarlo.monte_carlo(
             filt, sc, 14, jax.random.key(9), chunk_size=4, keep_runs=5, checkpoint=ckpt, progress=False
         )
@@ -232,6 +324,57 @@ def test_checkpoint_resumes_bit_identical_after_a_kill(tmp_path):
         montecarlo.monte_carlo(
             filt, sc, 14, jax.random.key(8), chunk_size=3, keep_runs=5, checkpoint=ckpt, progress=False
         )
+
+
+def test_broken_checkpoints_are_refused_naming_the_file_and_the_remedy(tmp_path):
+    """Issue 48 item 3: truncated, empty, bit-flipped, foreign and other-version checkpoints."""
+    sc, filt = small_study(n_steps=4)
+    key = jax.random.key(2)
+    ckpt = tmp_path / "c.npz"
+    study = lambda **kw: montecarlo.monte_carlo(  # noqa: E731
+        filt, sc, 6, key, chunk_size=2, checkpoint=ckpt, progress=False, **kw
+    )
+    good = study()
+    data = ckpt.read_bytes()
+    arrays = dict(np.load(ckpt))
+    cases = {  # what the file holds: the cause the message gives
+        "truncated": (data[: len(data) // 2], "is truncated or corrupt"),
+        "empty": (b"", "is empty"),
+        "not npz": (b"hello", "is truncated or corrupt"),
+    }
+    for content, match in cases.values():
+        ckpt.write_bytes(content)
+        with pytest.raises(ValueError, match=f"checkpoint: '{ckpt}' {match}.*resume=False"):
+            study()
+    flipped = dict(arrays)
+    flipped["moments.mean"] = arrays["moments.mean"].copy()
+    flipped["moments.mean"].flat[3] = np.nextafter(flipped["moments.mean"].flat[3], np.inf)
+    with open(ckpt, "wb") as f:
+        np.savez(f, **flipped)  # one bit changed, the old checksum kept
+    with pytest.raises(ValueError, match="is corrupt: its contents do not match the checksum.*resume=False"):
+        study()
+    cfg = json.loads(str(arrays["config"]))
+    montecarlo._write_npz(ckpt, dict(arrays, config=np.asarray(json.dumps(dict(cfg, gmjax_version="9.9.9")))))
+    with pytest.raises(ValueError, match="written by gmjax 9.9.9, this is gmjax .*resume=False"):
+        study()
+    old = {k: v for k, v in arrays.items() if k != "checksum"}
+    with open(ckpt, "wb") as f:
+        np.savez(f, **old)
+    with pytest.raises(ValueError, match="written by an older gmjax"):
+        study()
+    np.savez(ckpt, x=np.zeros(2))
+    with pytest.raises(ValueError, match="is not a gmjax Monte Carlo checkpoint file"):
+        study()
+    again = study(resume=False)  # starts again and overwrites the broken file
+    assert again.resumed_runs == 0
+    assert_bit_identical(again, good)
+    assert study().resumed_runs == 6
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npz"]
+    # a saved result is checked the same way
+    good.save(tmp_path / "r.npz")
+    (tmp_path / "r.npz").write_bytes((tmp_path / "r.npz").read_bytes()[:100])
+    with pytest.raises(ValueError, match="result: .*r.npz' is truncated or corrupt"):
+        montecarlo.load_result(tmp_path / "r.npz")
 
 
 def test_progress_announces_compilation_and_moves_ten_times(capsys):
@@ -281,7 +424,7 @@ def test_armse_stderr_matches_spread_of_independent_studies():
     assert 0.5 * se < spread < 2.0 * se
     # the parts merge into the whole study
     assert montecarlo.merge(
-        [p._replace(runs=(40 * g, 40 * (g + 1))) for g, p in enumerate(parts)]
+        [p._replace(runs=(40 * g, 40 * (g + 1))) for g, p in enumerate(parts)], exact=False
     ).armse == pytest.approx(big.armse, rel=1e-13)
 
 
@@ -335,6 +478,11 @@ def test_bad_arguments_raise():
             montecarlo.monte_carlo(filt, sc, args.pop("n_runs"), key, progress=False, **args)
     with pytest.raises(ValueError, match="n_steps"):
         montecarlo.monte_carlo(filt, sc._replace(n_steps=0), 2, key, progress=False)
+    for bad in (0, 1.5, "seed", jax.random.split(key, 2)):
+        with pytest.raises(ValueError, match=r"key: expected (a|one) PRNG key"):
+            montecarlo.monte_carlo(filt, sc, 2, bad, progress=False)
+    legacy = montecarlo.monte_carlo(filt, sc, 2, jax.random.key_data(key), progress=False)  # raw uint32 data
+    assert legacy.config["key"] == montecarlo.monte_carlo(filt, sc, 2, key, progress=False).config["key"]
     too_small = build_gsf(sc.model, "ekf", PruneTop(num_out=4), capacity=4)  # the prior has 5
     with pytest.raises(ValueError, match="prior: 5 live components exceed the filter capacity 4"):
         montecarlo.monte_carlo(too_small, sc, 2, key, progress=False)
@@ -349,14 +497,22 @@ def test_bad_arguments_raise():
         montecarlo.monte_carlo(filt32, promotes, 2, key, progress=False)
 
 
-def test_same_numbers_on_four_forced_host_devices(tmp_path):
+def test_same_bits_on_four_forced_host_devices(tmp_path):
+    """Four devices, chunks of 8 (blocks of 2 runs) against one device with chunks of 2: the same blocks,
+    so the same bits, and parts run on either merge into the whole."""
     sc, filt = small_study()
-    ref = montecarlo.monte_carlo(filt, sc, 6, jax.random.key(5), chunk_size=4, keep_runs=6, progress=False)
+    ref = montecarlo.monte_carlo(filt, sc, 11, jax.random.key(5), chunk_size=2, keep_runs=11, progress=False)
+    montecarlo.monte_carlo(
+        filt, sc, 11, jax.random.key(5), chunk_size=2, keep_runs=11, runs=range(0, 4), progress=False
+    ).save(tmp_path / "part0.npz")
     script = SMALL + textwrap.dedent(
         f"""
         assert len(jax.devices()) == 4, jax.devices()
-        r = montecarlo.monte_carlo(filt, sc, 6, jax.random.key(5), chunk_size=4, keep_runs=6, progress=False)
+        r = montecarlo.monte_carlo(filt, sc, 11, jax.random.key(5), chunk_size=8, keep_runs=11, progress=False)
         r.save(r"{tmp_path / "out.npz"}")
+        r = montecarlo.monte_carlo(filt, sc, 11, jax.random.key(5), chunk_size=8, keep_runs=11,
+                                   runs=range(4, 11), progress=False)
+        r.save(r"{tmp_path / "part1.npz"}")
         """
     )
     env = dict(
@@ -368,11 +524,11 @@ def test_same_numbers_on_four_forced_host_devices(tmp_path):
     res = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
     out = montecarlo.load_result(tmp_path / "out.npz")
-    # each device compiles a different per-device batch shape and the sums reduce across devices:
-    # equal to rounding (observed: <= 3e-14 relative), not necessarily bit for bit
-    np.testing.assert_allclose(out.scores.sq_error, ref.scores.sq_error, rtol=1e-12, atol=1e-14)
-    np.testing.assert_array_equal(out.scores.n_components, ref.scores.n_components)
-    assert_close(out, ref, rtol=1e-12)
+    assert out.config["devices"]["count"] == 4 and out.config["block_size"] == 2
+    np.testing.assert_array_equal(out.scores.sq_error, ref.scores.sq_error)
+    assert_same_study(out, ref)
+    parts = [montecarlo.load_result(tmp_path / f"part{i}.npz") for i in (0, 1)]
+    assert_same_study(montecarlo.merge(parts), ref)  # one part on one device, the other on four
 
 
 def _free_port() -> int:
@@ -382,9 +538,10 @@ def _free_port() -> int:
 
 
 def test_two_processes_with_jax_distributed_equal_one_process(tmp_path):
-    """Two CPU processes under ``jax.distributed`` (gloo collectives) shard the runs and agree with one."""
+    """Issue 48 item 6: two CPU processes under ``jax.distributed`` (gloo collectives), one device each,
+    chunks of 4 (blocks of 2), return the bits of one process with chunks of 2."""
     sc, filt = small_study()
-    ref = montecarlo.monte_carlo(filt, sc, 11, jax.random.key(4), chunk_size=4, keep_runs=5, progress=False)
+    ref = montecarlo.monte_carlo(filt, sc, 11, jax.random.key(4), chunk_size=2, keep_runs=5, progress=False)
     port = _free_port()
     script = (
         textwrap.dedent(
@@ -423,8 +580,8 @@ def test_two_processes_with_jax_distributed_equal_one_process(tmp_path):
     r1 = montecarlo.load_result(tmp_path / "out1.npz")
     assert_bit_identical(r0, r1)  # every process holds the same all-reduced accumulators
     assert r0.config["devices"] == {"count": 2, "platform": "cpu", "processes": 2}
-    np.testing.assert_allclose(r0.scores.sq_error, ref.scores.sq_error, rtol=1e-12, atol=1e-14)
-    assert_close(r0, ref, rtol=1e-12)
+    np.testing.assert_array_equal(r0.scores.sq_error, ref.scores.sq_error)
+    assert_same_study(r0, ref)
 
 
 def test_study_of_an_irregular_time_scenario_uses_its_inputs():
