@@ -10,40 +10,54 @@ number of processes, and the parts :func:`merge` into the whole.
 compiled for the chunk shape (the last chunk is padded and masked), so every chunk runs the same code:
 the simulation of the chunk's runs, kept per scenario object, chunk size and devices so that every
 filter studied on the same scenario object reuses it (as :func:`gmjax.studies.run_study` does), and the
-filter with its scoring. ``compile_s`` counts the simulation only in the study that compiled it.
-Each chunk returns, per step, the mean and centred sum of squares of every score (squared error,
-position squared error, NEES, component count, ISE, reducer cost, flags), the ``(T, T)`` centred
-cross-moments of the squared errors (for the ARMSE standard error, see :func:`_armse_and_stderr`),
+filter with its scoring, kept per filter, scenario and params object. ``compile_s`` counts a program
+only in the study that compiled it. Each device of a chunk sums its own **block** of ``chunk_size /
+devices`` runs: per step, the sum and sum of squares of every score (squared error, position squared
+error, NEES, component count, ISE, reducer cost, flags) about the block's first run, the ``(T, T)``
+cross-products of the squared errors (for the ARMSE standard error, see :func:`_armse_and_stderr`),
 log-spaced histograms of the NEES and of the position error (for the median NEES and the CEP) and the
-number of runs with a flag. The host merges them in float64 (Chan et al.'s parallel update), so memory
-is ``O(T^2 + chunk T)`` whatever ``n_runs`` is; the ``(T, T)`` cross-moments cost 8 T² bytes twice
-(0.23 MB at T = 120, 16 MB at T = 1000). Full per-run scores are kept for the first ``keep_runs`` runs.
+number of runs with a flag. The host centres each block in float64 and combines the blocks (Chan et
+al.'s pairwise update) in one fixed binary tree over the study's block indices (:class:`BlockSums`),
+keeping only its complete nodes, so memory is ``O(chunk T + T² log2(N / block))`` whatever ``n_runs``
+is; each node's ``(T, T)`` cross-moments cost 8 T² bytes twice (0.23 MB at T = 120, 16 MB at T = 1000).
+Full per-run scores are kept for the first ``keep_runs`` runs.
 
 **Medians.** ``median_nees`` and ``cep`` come from fixed histograms with 1000 bins per decade over
 ``[1e-10, 1e10]``: each middle order statistic is found in its bin and placed inside it by its rank
 (log-linear), so the median's relative error is below ``10**(1/1000) - 1 = 0.23 %`` (values under
 1e-10 read as 0, values above 1e10 as 1e10; a NaN anywhere gives NaN, as :func:`numpy.median` does).
 
-**Determinism.** With the same ``chunk_size`` and devices, a study is bit-identical whatever the
-range split at chunk boundaries, an interruption and resume, or the number of chunks (tested): every
-chunk runs the same compiled code. Across chunk sizes the per-run numbers agree to rounding only: XLA
-compiles each batch shape on its own and may vectorise it differently. Measured on seed 000's jump
-system (30 steps, 12-24 runs, CPU): per-run scores were identical for chunk sizes 5, 8, 12 and 24 with
-NL-, R- and PCM-GSFs and a PF, but a chunk of 1 (compiled unbatched) changed PCM-GSF's per-run squared
-errors by up to 8e-5 relative in float32 and 2e-13 in float64; and the chunk sums are added in another
-order (ARMSE: 3e-8 relative in float32, 1e-16 in float64). The test checks chunk sizes to 1e-12
-relative in float64.
+**Determinism.** A study's numbers depend on its runs and its block size only. Block ``k`` always holds
+runs ``[k b, (k + 1) b)``; each block is summed by the same per-device program (its scores materialised
+before they are summed, and no division on the device, so no fused multiply-add or reciprocal of one
+program's choosing enters the sums), and the tree combines the blocks in an order fixed by their
+indices, never by their arrival. So with the same block size, a study is bit-identical (every field
+of the result, every accumulator) whatever the split of its runs at block boundaries into parts
+merged by :func:`merge` (in any order), an interruption and resume, and the number of devices and
+processes: a chunk of 8 runs on 4 devices gives the bits of a chunk of 2 on one (tested, with two
+processes under ``jax.distributed`` too). :func:`monte_carlo` refuses ranges off the block grid
+(their partial blocks would be summed in other groups). Across block sizes, numbers agree to
+rounding only: XLA compiles each batch shape on its own and may vectorise it differently. Measured on
+seed 000's jump system (30 steps, 12-24 runs, CPU): per-run scores were identical for chunk sizes 5,
+8, 12 and 24 with NL-, R- and PCM-GSFs and a PF, but a chunk of 1 (compiled unbatched) changed
+PCM-GSF's per-run squared errors by up to 8e-5 relative in float32 and 2e-13 in float64; and the sums
+are grouped otherwise (ARMSE: 3e-8 relative in float32, 1e-16 in float64). The test checks chunk
+sizes to 1e-12 relative in float64.
 
-**Resume.** ``checkpoint=path`` writes the accumulators after every chunk (``.npz``, no pickle; a temp
-file and :func:`os.replace`) with a hash of the configuration (filter params, scenario settings, key,
-run range, chunk size, dtype, devices, gmjax and JAX versions). Calling again with the same arguments
-resumes after the last finished chunk and returns the bit-identical result; a checkpoint written by a
-different configuration is refused (``ValueError`` naming what differs).
+**Resume.** ``checkpoint=path`` writes the block sums after every chunk (``.npz``, no pickle, with a
+sha256 checksum of its arrays; a temporary file and :func:`os.replace`, temporary files of a killed
+write removed on start and finish) with a hash of the configuration (filter params, scenario settings,
+key, run range, block size, dtype, gmjax and JAX versions). Calling again with the same arguments
+resumes after the last finished chunk and returns the bit-identical result, on any number of devices
+with the same block size. A checkpoint that is truncated, empty, corrupt (checksum), written by
+another gmjax or by a different configuration is refused with a ``ValueError`` naming the file, the
+cause (what differs) and the remedy (delete it, or ``resume=False``).
 
 **Many devices and hosts.** Each chunk's run axis is sharded over a 1-D mesh of ``devices`` (default
-``jax.devices()``: every device of every process). Under ``jax.distributed.initialize`` the chunk sums
-are all-reduced across processes by XLA inside the compiled chunk, so every process holds the same
-accumulators and returns the same result. Launch one process per host with the same script::
+``jax.devices()``: every device of every process), one block per device. Under
+``jax.distributed.initialize`` every process gathers every block's sums, so every process combines the
+same blocks in the same tree and returns the same result. Launch one process per host with the same
+script::
 
     # SLURM: srun --nodes=4 --ntasks-per-node=1 python study.py
     import jax
@@ -53,8 +67,7 @@ accumulators and returns the same result. Launch one process per host with the s
         result.save("study.npz")
 
 On CPU hosts, the cross-process collectives are gloo (``jax_cpu_collectives_implementation``, JAX's
-default). Sharded over several devices, the reduction order of a chunk's sums depends on the device
-count, so results agree with a one-device run to rounding (tested to 1e-12 relative in float64).
+default).
 
 **Differentiable studies.** :func:`study_scores` (per-run scores ``(N, T)``, ``vmap`` of
 :func:`score_run`) and :func:`study_loss` are traceable: ``jax.grad`` of a study loss w.r.t. a
