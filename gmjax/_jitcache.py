@@ -11,10 +11,11 @@ reused while the entry lives; the least recently used entry goes first.
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
 from typing import Any, Callable, Hashable, TypeVar
 
-__all__ = ["IdentityCache"]
+__all__ = ["IdentityCache", "CachedProgram"]
 
 V = TypeVar("V")
 
@@ -47,3 +48,21 @@ class IdentityCache:
 
     def __len__(self) -> int:
         return len(self._entries)
+
+
+class CachedProgram:
+    """A jitted function and its compiled executables, one per lowered program text (so a change of
+    dtype or configuration that changes the program compiles anew)."""
+
+    def __init__(self, jitted: Any):
+        self.jitted = jitted
+        self._compiled: dict[str, Any] = {}
+
+    def compile(self, *args) -> tuple[Any, float]:
+        """``(executable, seconds spent: lowering, plus compiling when it was not compiled before)``."""
+        t0 = time.perf_counter()
+        lowered = self.jitted.lower(*args)
+        text = lowered.as_text()
+        if text not in self._compiled:
+            self._compiled[text] = lowered.compile()
+        return self._compiled[text], time.perf_counter() - t0

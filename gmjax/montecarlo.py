@@ -93,7 +93,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax import metrics
-from gmjax._jitcache import IdentityCache
+from gmjax._jitcache import CachedProgram, IdentityCache
 from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter, StepInputs, run
@@ -1175,40 +1175,22 @@ def _validate(filter: Filter, scenario: Scenario, params: Any) -> Any:
     return dtype
 
 
-class _CachedProgram:
-    """A jitted function and its compiled executables, one per lowered program text (so a change of
-    dtype or configuration that changes the program compiles anew)."""
-
-    def __init__(self, jitted: Any):
-        self.jitted = jitted
-        self._compiled: dict[str, Any] = {}
-
-    def compile(self, *args) -> tuple[Any, float]:
-        """``(executable, seconds spent: lowering, plus compiling when it was not compiled before)``."""
-        t0 = time.perf_counter()
-        lowered = self.jitted.lower(*args)
-        text = lowered.as_text()
-        if text not in self._compiled:
-            self._compiled[text] = lowered.compile()
-        return self._compiled[text], time.perf_counter() - t0
-
-
 _SIMULATION_PROGRAMS = IdentityCache(maxsize=16)
 
 
-def _simulation_program(scenario: Scenario, chunk: int, mesh: jax.sharding.Mesh) -> _CachedProgram:
+def _simulation_program(scenario: Scenario, chunk: int, mesh: jax.sharding.Mesh) -> CachedProgram:
     """jit of ``(key, start) -> _SimulatedRun`` batched over runs ``start .. start + chunk - 1``, kept
     per scenario object, chunk size and mesh: the filters of one study share one simulation program."""
 
     runs_sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("runs"))
 
-    def make() -> _CachedProgram:
+    def make() -> CachedProgram:
         def fn(key, start):
             idx = start + jnp.arange(chunk, dtype=jnp.uint32)
             keys = jax.vmap(run_key, (None, 0))(key, jax.lax.with_sharding_constraint(idx, runs_sharding))
             return jax.vmap(lambda k: _simulate_run(scenario, k))(keys)
 
-        return _CachedProgram(jax.jit(fn, out_shardings=runs_sharding))
+        return CachedProgram(jax.jit(fn, out_shardings=runs_sharding))
 
     return _SIMULATION_PROGRAMS.get((scenario,), make, tag=(chunk, mesh))
 
@@ -1254,7 +1236,7 @@ def _chunk_program(
         out = sharded(sims, valid)
         return out if keep else (out, None)
 
-    return _CachedProgram(jax.jit(fn)), meta
+    return CachedProgram(jax.jit(fn)), meta
 
 
 _CHUNK_PROGRAMS = IdentityCache(maxsize=16)
