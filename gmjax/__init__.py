@@ -7,7 +7,9 @@ never changes ``jax.config``; enable float64 yourself with ``jax.config.update("
 Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`quadrature`,
 :mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`scenarios` (the papers' systems),
 :mod:`montecarlo`, :mod:`pcrb`,
-:mod:`tune` (differentiable threshold tuning), :mod:`studies`.
+:mod:`tune` (differentiable threshold tuning), :mod:`studies`, :mod:`params` (``grad``,
+``value_and_grad``, ``partition``, ``combine`` over the differentiable leaves of a params pytree,
+re-exported here: ``gmjax.grad(loss)(gsf.params)`` skips the mixtures' boolean masks).
 
 Docstrings cite the five papers gmjax implements by equation number under the labels "seed 000" to
 "seed 004": seed 000 is Xu et al., PCM (IEEE Access); seed 001 Liu et al. 2014, AGSSCKF; seed 002
@@ -24,6 +26,7 @@ from gmjax import mixture as mixture
 from gmjax import models as models
 from gmjax import montecarlo as montecarlo
 from gmjax import multitarget as multitarget
+from gmjax import params as params
 from gmjax import pcrb as pcrb
 from gmjax import quadrature as quadrature
 from gmjax import reduction as reduction
@@ -32,6 +35,10 @@ from gmjax import split as split
 from gmjax import tune as tune
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
+from gmjax.params import combine as combine
+from gmjax.params import grad as grad
+from gmjax.params import partition as partition
+from gmjax.params import value_and_grad as value_and_grad
 
 try:
     __version__ = _metadata.version("gmjax")
@@ -41,6 +48,10 @@ except _metadata.PackageNotFoundError:  # running from a source tree that is not
 __all__ = [
     "GaussianMixture",
     "monte_carlo",
+    "grad",
+    "value_and_grad",
+    "partition",
+    "combine",
     "gaussian",
     "metrics",
     "mixture",
@@ -54,5 +65,6 @@ __all__ = [
     "scenarios",
     "tune",
     "multitarget",
+    "params",
     "__version__",
 ]
