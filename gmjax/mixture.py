@@ -11,7 +11,7 @@ Boundary functions (:meth:`GaussianMixture.create`, :func:`check`) validate eage
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -107,16 +107,17 @@ class GaussianMixture(NamedTuple):
 
         Raises:
             ValueError: naming the field and offending index on NaN/inf, negative or all-zero
-                weights, non-symmetric or non-PD covariances, mismatched shapes,
-                ``capacity < n``, a non-floating ``dtype``, or values that ``dtype`` cannot hold
+                weights, non-symmetric or non-PD covariances, mismatched shapes, complex or
+                non-numeric arrays, a state dimension ``d = 0``, a ``capacity`` that is not an int
+                (e.g. 2.5) or is ``< n``, a non-floating ``dtype``, or values that ``dtype`` cannot hold
                 (a mean or weight that overflows, a positive weight that underflows to 0, a
                 covariance that is no longer positive definite after the cast), e.g.
                 ``"covs: component 0 is not positive definite in float32"``.
         """
         dtype = _float_dtype(dtype)
-        w = np.asarray(weights, dtype=np.float64)
-        m = np.asarray(means, dtype=np.float64)
-        P = np.asarray(covs, dtype=np.float64)
+        w, m, P = (
+            _real_array(name, x) for name, x in (("weights", weights), ("means", means), ("covs", covs))
+        )
         if w.ndim != 1:
             raise ValueError(f"weights: expected shape (n,), got {w.shape}")
         n = w.shape[0]
@@ -127,13 +128,15 @@ class GaussianMixture(NamedTuple):
         if m.ndim != 2 or m.shape[0] != n:
             raise ValueError(f"means: expected shape ({n}, d) to match weights ({n},), got {m.shape}")
         d = m.shape[1]
+        if d == 0:
+            raise ValueError(f"means: the state dimension d is 0 (shape {m.shape}); a mixture needs d >= 1")
         if P.ndim == 1 and d == 1 and P.shape[0] == n:
             P = P[:, None, None]
         elif P.ndim == 2 and P.shape == (n, d):
             P = np.einsum("ki,ij->kij", P, np.eye(d))
         if P.shape != (n, d, d):
             raise ValueError(f"covs: expected shape ({n}, {d}, {d}), got {P.shape}")
-        K = n if capacity is None else int(capacity)
+        K = n if capacity is None else _capacity(capacity)
         if K < n:
             raise ValueError(f"capacity: {K} is smaller than the number of components {n}")
         _validate_components(w, m, P, np.ones(n, bool))
@@ -176,6 +179,22 @@ def from_gaussian(mean: ArrayLike, cov: ArrayLike, capacity: int = 1) -> Gaussia
     covs = jnp.broadcast_to(jnp.eye(d, dtype=cov.dtype), (capacity, d, d)).at[0].set(cov)
     weights = mask.astype(mean.dtype)
     return GaussianMixture(weights, means, covs, mask)
+
+
+def _real_array(name: str, x: ArrayLike) -> np.ndarray:
+    """``x`` as a float64 NumPy array; complex, boolean, string or object input is refused by name."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        kind = {"c": "complex", "b": "boolean"}.get(a.dtype.kind, "non-numeric")
+        raise ValueError(f"{name}: expected real numbers, got a {kind} array (dtype {a.dtype})")
+    return a.astype(np.float64)
+
+
+def _capacity(capacity: Any) -> int:
+    """``capacity`` as a Python int; a float such as 2.5, a bool or a non-scalar is refused."""
+    if isinstance(capacity, (bool, np.bool_)) or not isinstance(capacity, (int, np.integer)):
+        raise ValueError(f"capacity: expected a whole number of slots (an int), got {capacity!r}")
+    return int(capacity)
 
 
 def _float_dtype(dtype) -> np.dtype:

@@ -279,6 +279,7 @@ def scan_steps(
         k_init, k_steps = jax.random.split(key)
         step_keys = jax.random.split(k_steps, n_steps)
     state0 = filter.init(params, prior, key=k_init) if init_state is None else init_state
+    zs, inputs = _in_state_dtype(state0, zs, inputs)
 
     def step(state, xs):
         z, inp, k = xs
@@ -289,3 +290,26 @@ def scan_steps(
 
     _, (states, infos) = jax.lax.scan(step, state0, (zs, inputs, step_keys))
     return states, infos
+
+
+def _in_state_dtype(state: Any, zs: Array, inputs: StepInputs) -> tuple[Array, StepInputs]:
+    """``zs`` and the floating leaves of ``inputs`` cast to the floating dtype of the filter's state.
+
+    A float32 model run on float64 measurements (or times) under x64 would otherwise promote the
+    state to float64 in the first step and break the scan's carry; the model's dtype decides, as a
+    float32 model asked for float32 arithmetic. A state with no floating leaf, or with several
+    floating dtypes, leaves the arrays as they are.
+    """
+    dtypes = {leaf.dtype for leaf in jax.tree_util.tree_leaves(state) if _is_floating(leaf)}
+    if len(dtypes) != 1:
+        return zs, inputs
+    (dtype,) = dtypes
+    if jnp.issubdtype(zs.dtype, jnp.number) and zs.dtype != dtype:
+        zs = zs.astype(dtype)
+    inputs = jax.tree_util.tree_map(lambda x: x.astype(dtype) if _is_floating(x) else x, inputs)
+    return zs, inputs
+
+
+def _is_floating(leaf: Any) -> bool:
+    """Whether ``leaf`` is an array of a real floating dtype."""
+    return hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating)

@@ -22,10 +22,12 @@ from gmjax.multitarget.metrics import linear_sum_assignment as linear_sum_assign
 from gmjax.multitarget.metrics import ospa as ospa
 from gmjax.multitarget.metrics import soft_gospa as soft_gospa
 from gmjax.multitarget.phd import Estimates as Estimates
+from gmjax.multitarget.phd import PaddedScans as PaddedScans
 from gmjax.multitarget.phd import PHDParams as PHDParams
 from gmjax.multitarget.phd import PHDState as PHDState
 from gmjax.multitarget.phd import extract as extract
 from gmjax.multitarget.phd import gm_phd as gm_phd
+from gmjax.multitarget.phd import pad_scans as pad_scans
 from gmjax.multitarget.phd import run as run
 from gmjax.multitarget.phd import soft_estimates as soft_estimates
 from gmjax.multitarget.relaxed import RelaxedVoMa as RelaxedVoMa
@@ -49,6 +51,8 @@ __all__ = [
     "PHDState",
     "extract",
     "gm_phd",
+    "pad_scans",
+    "PaddedScans",
     "run",
     "soft_estimates",
     "RelaxedVoMa",

@@ -81,6 +81,8 @@ __all__ = [
     "predict_intensity",
     "update_intensity",
     "measurement_mask",
+    "PaddedScans",
+    "pad_scans",
 ]
 
 
@@ -155,6 +157,75 @@ def measurement_mask(zs: Array) -> Array:
     """``(..., M)`` bool: which rows of a padded measurement set ``(..., M, m)`` are measurements (finite
     rows; a NaN row is an absent measurement, a row with an infinite entry is ignored and flagged)."""
     return jnp.all(jnp.isfinite(zs), axis=-1)
+
+
+class PaddedScans(NamedTuple):
+    """Measurement sets of any sizes in one padded array (the input of :func:`run`).
+
+    Attributes:
+        zs: ``(T, M, m)``, scan ``k``'s first ``min(n_k, M)`` measurements, then NaN rows.
+        n_measurements: ``(T,)`` int32, ``n_k``, the measurements each scan had (before dropping).
+        overflow: ``(T,)`` bool, the scan had more than ``M`` measurements: its rows past ``M`` were
+            dropped and the filter never saw them.
+    """
+
+    zs: Array
+    n_measurements: Array
+    overflow: Array
+
+
+def pad_scans(scans: Any, max_measurements: int, *, dtype: Any = None) -> PaddedScans:
+    """Pad a list of measurement sets of different sizes to ``(T, M, m)``, flagging what does not fit.
+
+    A padded array cannot show that its producer dropped rows: a scan of 40 returns cut to ``M = 32``
+    rows looks like a scan of 32. Build the array here (as :func:`~gmjax.multitarget.simulate` does) so
+    that every cut scan is flagged in ``overflow``; report or refuse those scans, or pass a larger
+    ``max_measurements``. Rows are kept in the order given.
+
+    Args:
+        scans: a sequence of ``T`` arrays ``(n_k, m)`` (``n_k`` may be 0: an empty scan, shape
+            ``(0, m)`` or ``[]``), concrete values of finite numbers.
+        max_measurements: ``M >= 1``, the rows of each padded scan.
+        dtype: floating dtype of ``zs`` (default: the JAX default float).
+
+    Returns:
+        A :class:`PaddedScans`.
+
+    Raises:
+        ValueError: naming the scan: not a ``(n, m)`` array, ``m`` not that of the other scans, a
+            NaN or infinite entry (NaN marks an absent row in the padded form), or ``max_measurements``
+            not a positive int.
+    """
+    if isinstance(max_measurements, bool) or not isinstance(max_measurements, (int, np.integer)):
+        raise ValueError(f"max_measurements: expected a positive int, got {max_measurements!r}")
+    M = int(max_measurements)
+    if M < 1:
+        raise ValueError(f"max_measurements: expected a positive int, got {M}")
+    arrays = [np.asarray(z, dtype=np.float64) for z in scans]
+    if not arrays:
+        raise ValueError("scans: expected at least one scan")
+    dims = {a.shape[1] for a in arrays if a.ndim == 2 and a.shape[0] > 0}
+    if len(dims) > 1:
+        raise ValueError(f"scans: the scans' measurements differ in dimension m: {sorted(dims)}")
+    if not dims:
+        raise ValueError("scans: every scan is empty, so the measurement dimension m is unknown")
+    (m,) = dims
+    zs = np.full((len(arrays), M, m), np.nan)
+    counts = np.zeros(len(arrays), np.int32)
+    for k, a in enumerate(arrays):
+        if a.size == 0:
+            continue
+        if a.ndim != 2 or a.shape[1] != m:
+            raise ValueError(f"scans[{k}]: expected shape (n, {m}), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(
+                f"scans[{k}]: holds a NaN or infinite entry (row {int(np.argwhere(~np.isfinite(a))[0, 0])}); "
+                "NaN marks an absent row in the padded form, so leave absent measurements out"
+            )
+        counts[k] = a.shape[0]
+        zs[k, : min(a.shape[0], M)] = a[:M]
+    dtype = jnp.zeros(()).dtype if dtype is None else dtype
+    return PaddedScans(jnp.asarray(zs, dtype), jnp.asarray(counts), jnp.asarray(counts > M))
 
 
 # ----------------------------------------------------------------------------- the recursion
@@ -544,7 +615,10 @@ def run(
     """Run a multi-target filter over padded measurement sets with one ``lax.scan``.
 
     The same driver as :func:`gmjax.filters.run` (time indexing, key splitting), for measurements
-    ``zs`` of shape ``(T, M, m)`` whose NaN rows are absent measurements.
+    ``zs`` of shape ``(T, M, m)`` whose NaN rows are absent measurements. The filter cannot see rows
+    that were cut before it: a scan of more than ``M`` returns padded by hand to ``M`` rows reads as a
+    full scan. Build ``zs`` with :func:`pad_scans` (or :func:`~gmjax.multitarget.simulate`), whose
+    ``overflow`` flags every cut scan.
 
     Returns:
         ``(states, infos)`` with a leading ``T`` axis.
