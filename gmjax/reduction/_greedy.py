@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import make_info
@@ -185,5 +186,38 @@ def sequential(core):
     """
     seq = jax.custom_batching.sequential_vmap(core)
     fn = jax.custom_jvp(lambda *args: seq(*args))
-    fn.defjvp(lambda primals, tangents: jax.jvp(core, primals, tangents))
+
+    def jvp(primals, tangents):
+        out, out_dot = jax.jvp(core, primals, tangents)
+        zero = _zero_of(primals)
+        return _tied(out, zero), _tied(out_dot, zero)
+
+    fn.defjvp(jvp)
     return fn
+
+
+def _zero_of(tree) -> Array:
+    """A scalar ``0.0`` that depends on every array leaf of ``tree`` (NaN-safe: a ``where``, not ``0 *``).
+
+    Under ``vmap`` the sequential kernel returns every output batched; an output of ``core`` that
+    does not depend on a batched input (a threshold passed through, a constant) comes back from
+    ``jax.jvp(core)`` unbatched, and ``jit`` then fails with an ``IndexError`` when it batches the
+    linearised program. Adding this zero batches such outputs as the primal rule does.
+    """
+    zero = jnp.zeros(())
+    for leaf in jax.tree_util.tree_leaves(tree):
+        if jnp.size(leaf) and jnp.issubdtype(jnp.result_type(leaf), jnp.number):
+            zero = zero + jnp.where(False, jnp.ravel(leaf)[0], 0).astype(zero.dtype)
+    return zero
+
+
+def _tied(tree, zero: Array):
+    def tie(x):
+        dtype = jnp.result_type(x)
+        if dtype == jax.dtypes.float0:
+            return x
+        if dtype == jnp.bool_:
+            return x | (zero != 0)
+        return x + zero.astype(dtype)
+
+    return jax.tree_util.tree_map(tie, tree)
