@@ -1,0 +1,600 @@
+"""Learn a filter's model from data: maximum likelihood or a study loss, any parameter, in one call.
+
+:func:`fit` takes a filter, the data (measurement sequences, or a :class:`~gmjax.models.Scenario` to
+simulate), an objective and the names of the leaves of ``filter.params`` to fit, and runs an optax
+optimiser in a compiled step until the loss stops moving. Everything else in ``params`` is held fixed;
+masks and integer leaves never reach ``jax.grad``.
+
+**Which leaves.** ``fit=["model.measurement_noise", "reducer.threshold"]`` names leaves by their path in
+``filter.params`` (attribute names joined by dots, sequence indices as numbers); a name selects every
+differentiable leaf below it (a mixture's ``weights``, ``means`` and ``covs``, not its ``mask``).
+:func:`leaf_names` lists the names a filter has.
+
+**Constraints.** The optimiser works on unconstrained values ``u``; each fitted leaf is mapped into its
+valid set (:data:`CONSTRAINTS`): a mixture's ``weights`` onto the simplex of its live components
+(softmax of log-weights), its ``covs`` onto SPD matrices (log-Cholesky: ``C = L L^T`` with ``L``'s
+diagonal ``exp(u_ii)``), ``means`` unconstrained, every other leaf positive (softplus) unless
+``constraints={name: "real" | "positive" | "unit" | "simplex" | "spd" | (low, high)}`` says otherwise.
+Results are returned in natural units.
+
+**Objectives.** :func:`nll` (the default with measurements): the negative log-likelihood per step,
+``-(1 / (B T)) Σ_b Σ_t StepInfo.loglik``, of one ``(T, m)`` or a batch ``(B, T, m)`` of sequences, for
+every filter that reports ``loglik`` (KF/EKF/UKF/CKF, GSF, IMM, PF, ...). :func:`study` (the default with
+a scenario): any loss of :mod:`gmjax.montecarlo` (``armse_loss``, ``anees_loss``, ...) on ``n_runs``
+simulated runs, the same runs every step (common random numbers) unless ``resample``.
+
+**Convergence.** The default optimiser is ``optax.lbfgs()`` for a deterministic objective and
+``optax.adam(0.05)`` with ``resample``. A fit has converged when the unconstrained gradient's largest
+entry is below ``gtol`` or the loss changed by less than ``ftol`` (relative) in each of the last 3
+steps; it then stops early. A step with a non-finite loss or gradient is skipped and counted.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gmjax._jitcache import CachedProgram, IdentityCache
+from gmjax._progress import Progress
+from gmjax._types import Array, PRNGKey
+from gmjax.filters.base import Filter, StepInputs, run
+from gmjax.models.base import Scenario
+
+__all__ = [
+    "CONSTRAINTS",
+    "Objective",
+    "ParamView",
+    "FitHistory",
+    "FitResult",
+    "nll",
+    "study",
+    "leaf_names",
+    "param_view",
+    "loss_fn",
+    "fit",
+    "plot_history",
+]
+
+CONSTRAINTS = ("real", "positive", "unit", "simplex", "spd")
+
+
+# ----------------------------------------------------------------------------- leaves by name
+
+
+def _name(path: tuple) -> str:
+    parts = []
+    for k in path:
+        for attr in ("name", "key", "idx"):
+            if hasattr(k, attr):
+                parts.append(str(getattr(k, attr)))
+                break
+        else:  # pragma: no cover - other key types
+            parts.append(str(k))
+    return ".".join(parts)
+
+
+def _is_float_leaf(leaf: Any) -> bool:
+    if isinstance(leaf, (jax.Array, np.ndarray, np.generic)):
+        return bool(jnp.issubdtype(leaf.dtype, jnp.floating))
+    return isinstance(leaf, float)
+
+
+def leaf_names(params: Any) -> list[str]:
+    """The names :func:`fit` accepts for ``params``: every floating leaf's dotted path, in tree order."""
+    return [_name(p) for p, leaf in jax.tree_util.tree_flatten_with_path(params)[0] if _is_float_leaf(leaf)]
+
+
+# ----------------------------------------------------------------------------- constraints
+
+
+def _softplus_inv(x: Array) -> Array:
+    return x + jnp.log(-jnp.expm1(-x))
+
+
+def _to_natural(kind: Any, u: Array, mask: Array | None) -> Array:
+    if kind == "real":
+        return u
+    if kind == "positive":
+        return jax.nn.softplus(u)
+    if kind == "unit":
+        return jax.nn.sigmoid(u)
+    if isinstance(kind, tuple):
+        lo, hi = kind
+        return lo + (hi - lo) * jax.nn.sigmoid(u)
+    if kind == "simplex":
+        live = jnp.ones(u.shape, bool) if mask is None else mask
+        logits = jnp.where(live, u, -jnp.inf)
+        return jnp.where(live, jax.nn.softmax(logits), 0.0)
+    # spd: u is the log-Cholesky factor (..., d, d): strict lower triangle, log of the diagonal
+    d = u.shape[-1]
+    eye = jnp.eye(d, dtype=u.dtype)
+    L = jnp.tril(u, -1) + eye * jnp.exp(jnp.diagonal(u, axis1=-2, axis2=-1))[..., None, :]
+    return L @ jnp.swapaxes(L, -1, -2)
+
+
+def _to_unconstrained(kind: Any, x: Array, mask: Array | None) -> Array:
+    if kind == "real":
+        return x
+    if kind == "positive":
+        return _softplus_inv(x)
+    if kind == "unit":
+        return jnp.log(x) - jnp.log1p(-x)
+    if isinstance(kind, tuple):
+        lo, hi = kind
+        p = (x - lo) / (hi - lo)
+        return jnp.log(p) - jnp.log1p(-p)
+    if kind == "simplex":
+        live = jnp.ones(x.shape, bool) if mask is None else mask
+        return jnp.where(live, jnp.log(jnp.where(live, x, 1.0)), 0.0)
+    L = jnp.linalg.cholesky(x)
+    d = x.shape[-1]
+    eye = jnp.eye(d, dtype=x.dtype)
+    return jnp.tril(L, -1) + eye * jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1))[..., None, :]
+
+
+def _check_natural(kind: Any, name: str, x: np.ndarray, mask: np.ndarray | None) -> None:
+    """Refuse a starting value outside the leaf's constraint (its unconstrained value would be NaN)."""
+    live = np.ones(x.shape[:1], bool) if mask is None else np.asarray(mask)
+    bad = None
+    if kind == "positive" and not np.all(x > 0):
+        bad = "must be > 0"
+    elif kind == "unit" and not np.all((x > 0) & (x < 1)):
+        bad = "must lie in (0, 1)"
+    elif isinstance(kind, tuple) and not np.all((x > kind[0]) & (x < kind[1])):
+        bad = f"must lie in ({kind[0]}, {kind[1]})"
+    elif kind == "simplex" and not (np.all(x[live] > 0) and abs(x[live].sum() - 1) < 1e-6):
+        bad = "must be > 0 on the live components and sum to 1"
+    elif kind == "spd" and not np.all(np.linalg.eigvalsh(x[live] if x.ndim == 3 else x) > 0):
+        bad = "must be symmetric positive definite"
+    if bad is not None:
+        raise ValueError(f"fit: {name!r} starts at {x.tolist()!r:.120}, which {bad} (constraint {kind!r})")
+
+
+def _default_constraint(name: str) -> str:
+    last = name.rsplit(".", 1)[-1]
+    return {"weights": "simplex", "covs": "spd", "means": "real"}.get(last, "positive")
+
+
+def _as_constraint(c: Any, name: str) -> Any:
+    if isinstance(c, str) and c in CONSTRAINTS:
+        return c
+    if isinstance(c, (tuple, list)) and len(c) == 2 and all(isinstance(v, (int, float)) for v in c):
+        lo, hi = float(c[0]), float(c[1])
+        if not lo < hi:
+            raise ValueError(f"constraints[{name!r}]: need low < high, got {c!r}")
+        return (lo, hi)
+    raise ValueError(f"constraints[{name!r}]: expected one of {CONSTRAINTS} or (low, high), got {c!r}")
+
+
+class ParamView(NamedTuple):
+    """The fitted leaves of a params pytree and their constraints (see :func:`param_view`).
+
+    Attributes:
+        names: the fitted leaves' names, in tree order.
+        constraints: name -> constraint (one of :data:`CONSTRAINTS` or ``(low, high)``).
+        params: the params pytree the view was made from (everything not fitted is taken from it).
+    """
+
+    names: tuple[str, ...]
+    constraints: dict[str, Any]
+    params: Any
+
+    def _leaves(self) -> tuple[list, Any, dict[str, int], dict[str, Any]]:
+        flat, treedef = jax.tree_util.tree_flatten_with_path(self.params)
+        index = {_name(p): i for i, (p, _) in enumerate(flat)}
+        leaves = [leaf for _, leaf in flat]
+        masks = {}
+        for n in self.names:  # a mixture's weights are constrained on its live components
+            parent = n.rsplit(".", 1)[0] + ".mask" if "." in n else "mask"
+            masks[n] = leaves[index[parent]] if parent in index and n.endswith("weights") else None
+        return leaves, treedef, index, masks
+
+    def unconstrained(self, params: Any = None) -> dict[str, Array]:
+        """``{name: u}``: the unconstrained values of the fitted leaves of ``params`` (default: the view's)."""
+        view = self if params is None else self._replace(params=params)
+        leaves, _, index, masks = view._leaves()
+        return {
+            n: _to_unconstrained(self.constraints[n], jnp.asarray(leaves[index[n]]), masks[n])
+            for n in self.names
+        }
+
+    def natural(self, u: Mapping[str, Array]) -> dict[str, Array]:
+        """``{name: value}`` in natural units for unconstrained ``u``."""
+        _, _, _, masks = self._leaves()
+        return {n: _to_natural(self.constraints[n], u[n], masks[n]) for n in self.names}
+
+    def params_at(self, u: Mapping[str, Array]) -> Any:
+        """The full params pytree with the fitted leaves at ``u`` (traceable)."""
+        leaves, treedef, index, _ = self._leaves()
+        leaves = list(leaves)
+        for n, v in self.natural(u).items():
+            leaves[index[n]] = v
+        return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def param_view(
+    params: Any, fit: Sequence[str] | str, constraints: Mapping[str, Any] | None = None
+) -> ParamView:
+    """Select the leaves of ``params`` named by ``fit`` (each a leaf's dotted path or a prefix of it).
+
+    Raises:
+        ValueError: a name that selects no floating leaf (the message lists the names there are), a bad
+            constraint, or a starting value outside its constraint.
+    """
+    if isinstance(fit, str):
+        fit = [fit]
+    fit = list(fit)
+    if not fit:
+        raise ValueError("fit: name at least one leaf of filter.params to fit")
+    available = leaf_names(params)
+    names: list[str] = []
+    for sel in fit:
+        if not isinstance(sel, str):
+            raise ValueError(f"fit: expected leaf names (str), got {sel!r}")
+        hit = [n for n in available if n == sel or n.startswith(sel + ".")]
+        if not hit:
+            raise ValueError(
+                f"fit: {sel!r} names no floating leaf of filter.params; the leaves are {available}"
+            )
+        names += [n for n in hit if n not in names]
+    names = [n for n in available if n in names]  # tree order
+    constraints = dict(constraints or {})
+    chosen: dict[str, Any] = {}
+    for n in names:
+        rule = next((c for sel, c in constraints.items() if n == sel or n.startswith(sel + ".")), None)
+        chosen[n] = _default_constraint(n) if rule is None else _as_constraint(rule, n)
+    unknown = [sel for sel in constraints if not any(n == sel or n.startswith(sel + ".") for n in names)]
+    if unknown:
+        raise ValueError(f"constraints: {unknown} name no fitted leaf (fitted: {names})")
+    view = ParamView(tuple(names), chosen, params)
+    leaves, _, index, masks = view._leaves()
+    for n in names:
+        m = masks[n]
+        _check_natural(
+            chosen[n], n, np.asarray(leaves[index[n]], np.float64), None if m is None else np.asarray(m)
+        )
+    return view
+
+
+# ----------------------------------------------------------------------------- objectives
+
+
+class Objective(NamedTuple):
+    """What :func:`fit` minimises: ``kind`` ``"nll"`` (measurements) or ``"study"`` (a scenario)."""
+
+    kind: str
+    loss: Callable | None = None
+    n_runs: int = 16
+    resample: bool = False
+
+
+def nll() -> Objective:
+    """The negative log-likelihood per step, ``-(1 / (B T)) Σ_b Σ_t StepInfo.loglik`` (predict-only steps
+    contribute 0), of the filter on the given measurement sequences."""
+    return Objective("nll")
+
+
+def study(loss: Callable | None = None, n_runs: int = 16, *, resample: bool = False) -> Objective:
+    """A Monte Carlo study loss (:func:`gmjax.montecarlo.study_loss`): ``loss`` (default ARMSE of the
+    position) of ``n_runs`` runs of the scenario; the same runs every step unless ``resample``."""
+    if isinstance(n_runs, bool) or not isinstance(n_runs, int) or n_runs < 1:
+        raise ValueError(f"n_runs: must be a positive int, got {n_runs!r}")
+    return Objective("study", loss, n_runs, resample)
+
+
+def _is_multitarget(filter: Filter) -> bool:
+    from gmjax.multitarget.phd import PHDParams
+
+    return isinstance(filter.params, PHDParams)
+
+
+def _measurement_data(data: Any, filter: Filter) -> tuple[Array, Any]:
+    zs, inputs = data if isinstance(data, tuple) and len(data) == 2 else (data, None)
+    zs = jnp.asarray(zs)
+    sets = int(_is_multitarget(filter))  # a GM-PHD step measures a padded set (M, m)
+    if zs.ndim - sets not in (2, 3) or not jnp.issubdtype(zs.dtype, jnp.floating):
+        want = "padded sets (T, M, m) or a batch (B, T, M, m)" if sets else "(T, m) or a batch (B, T, m)"
+        raise ValueError(
+            f"data: expected float measurements {want}, or (zs, inputs); got {zs.dtype} {zs.shape}"
+        )
+    return zs, inputs
+
+
+def _nll_value(filter: Filter, params: Any, zs: Array, inputs: Any, key: PRNGKey) -> Array:
+    sets = _is_multitarget(filter)
+    if sets:
+        from gmjax.multitarget.phd import run as run_sets
+    batched = zs.ndim == 3 + sets
+    zb = zs if batched else zs[None]
+    keys = jax.random.split(key, zb.shape[0])
+    if inputs is None or isinstance(inputs, StepInputs) or jnp.ndim(inputs) == 1:
+        in_axis = None  # one set of inputs for every sequence
+    else:
+        in_axis = 0
+
+    def one(z, inp, k):
+        return (run_sets if sets else run)(filter, z, inp, key=k, params=params)[1].loglik.sum()
+
+    ll = jax.vmap(one, (0, in_axis, 0))(zb, inputs, keys)
+    return -jnp.sum(ll) / (zb.shape[0] * zb.shape[1])
+
+
+def _value_fn(
+    filter: Filter, objective: Objective, scenario: Scenario | None, names, constraints
+) -> Callable:
+    """``(u, key, base_params, data) -> ()`` with the data and the fixed params as arguments, so one
+    compiled program serves every data set of the same shapes."""
+    if objective.kind == "study":
+        from gmjax.montecarlo import armse_loss, study_loss
+
+        loss = armse_loss() if objective.loss is None else objective.loss
+
+        def study_value(u, k, base, data):
+            del data
+            params = ParamView(names, constraints, base).params_at(u)
+            return study_loss(filter, scenario, objective.n_runs, k, loss, params=params)
+
+        return study_value
+
+    def nll_value(u, k, base, data):
+        zs, inputs = data
+        return _nll_value(filter, ParamView(names, constraints, base).params_at(u), zs, inputs, k)
+
+    return nll_value
+
+
+def _data_args(data: Any, objective: Objective, filter: Filter) -> tuple:
+    return () if objective.kind == "study" else _measurement_data(data, filter)
+
+
+def loss_fn(
+    filter: Filter, data: Any, objective: Objective, view: ParamView
+) -> Callable[[Any, PRNGKey], Array]:
+    """``(u, key) -> ()``: the objective :func:`fit` minimises, at unconstrained values ``u`` (a dict name ->
+    array, as :meth:`ParamView.unconstrained` gives); traceable and differentiable."""
+    scenario = data if objective.kind == "study" else None
+    value = _value_fn(filter, objective, scenario, view.names, view.constraints)
+    args = _data_args(data, objective, filter)
+    return lambda u, k: value(u, k, view.params, args)
+
+
+_STEP_PROGRAMS = IdentityCache(maxsize=16)
+
+
+def _step_program(
+    filter, objective, scenario, optimizer, names, constraints
+) -> tuple[CachedProgram, Callable]:
+    """The compiled optimiser step ``(u, state, key, base, data) -> (u, state, loss, grad_max, ok,
+    natural)`` and the optimiser's ``init``, kept per filter, objective, scenario and optimizer object."""
+    import optax
+
+    def make():
+        opt = optax.with_extra_args_support(optimizer)
+        value = _value_fn(filter, objective, scenario, names, constraints)
+
+        def step(u, state, k, base, data):
+            v, g = jax.value_and_grad(value)(u, k, base, data)
+            leaves = jax.tree_util.tree_leaves(g)
+            ok = jnp.isfinite(v) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+            g_safe = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, 0.0), g)
+            updates, new_state = opt.update(
+                g_safe, state, u, value=v, grad=g_safe, value_fn=lambda w: value(w, k, base, data)
+            )
+            new_u = jax.tree_util.tree_map(
+                lambda a, b: jnp.where(ok, a, b), optax.apply_updates(u, updates), u
+            )
+            new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new_state, state)
+            gmax = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in leaves]))
+            natural = ParamView(names, constraints, base).natural(u)
+            return new_u, new_state, v, gmax, ok, natural
+
+        return CachedProgram(jax.jit(step)), opt.init
+
+    tag = (
+        names,
+        tuple(sorted(constraints.items())),
+        objective.kind,
+        objective.n_runs,
+        objective.resample,
+    )
+    return _STEP_PROGRAMS.get((filter, objective.loss, scenario, optimizer), make, tag=tag)
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+class FitHistory(NamedTuple):
+    """Step by step (NumPy; one row per step taken): ``loss``, ``grad_max`` (largest unconstrained
+    gradient entry), ``ok`` (finite loss and gradient) and ``values`` (name -> natural value before the
+    step)."""
+
+    loss: np.ndarray
+    grad_max: np.ndarray
+    ok: np.ndarray
+    values: dict[str, np.ndarray]
+
+
+class FitResult(NamedTuple):
+    """Outcome of :func:`fit`.
+
+    Attributes:
+        params: the filter's params with the fitted leaves (natural units); ``filter._replace(params=
+            result.params)`` is the fitted filter.
+        values: name -> fitted value (NumPy, natural units).
+        loss: the objective at the start of the last step (for a converged fit, the final value's
+            within ``ftol``); ``history.loss`` has every step's.
+        history: a :class:`FitHistory`; ``plot_history`` of :mod:`gmjax.fitting` plots it.
+        converged: the convergence test passed (module docstring); ``n_steps``: steps taken;
+            ``n_skipped``: non-finite steps skipped.
+        compile_s, run_s: seconds compiling the step and running the steps.
+    """
+
+    params: Any
+    values: dict[str, np.ndarray]
+    loss: float
+    history: FitHistory
+    converged: bool
+    n_steps: int
+    n_skipped: int
+    compile_s: float
+    run_s: float
+
+
+def fit(
+    filter: Filter,
+    data: Any,
+    objective: Objective | Callable | None = None,
+    *,
+    fit: Sequence[str] | str,
+    key: PRNGKey,
+    constraints: Mapping[str, Any] | None = None,
+    optimizer: Any = None,
+    steps: int = 200,
+    gtol: float = 1e-8,
+    ftol: float = 1e-12,
+    params: Any = None,
+    progress: bool = True,
+) -> FitResult:
+    """Fit the leaves ``fit`` of ``filter.params`` to ``data`` by minimising ``objective``.
+
+    Args:
+        filter: any :class:`~gmjax.filters.Filter`.
+        data: measurements ``zs (T, m)`` or a batch ``(B, T, m)``, or ``(zs, inputs)`` (inputs as
+            :func:`gmjax.filters.run` takes them, shared by the batch or with a leading ``B`` axis);
+            or a :class:`~gmjax.models.Scenario` for a study loss.
+        objective: :func:`nll` (default with measurements), :func:`study` (default with a scenario:
+            :func:`study` ``()``), or, with a scenario, a bare ``RunScores -> ()`` loss such as
+            :func:`gmjax.montecarlo.armse_loss` ``()``.
+        fit: names of the leaves to fit (see :func:`leaf_names`).
+        key: PRNG key: the filter's key (particle filters) and the study's runs.
+        constraints: name -> constraint, overriding the defaults (module docstring).
+        optimizer: an optax transformation on the unconstrained values (default ``optax.lbfgs()``;
+            ``optax.adam(0.05)`` with a resampled study).
+        steps: at most this many steps.
+        gtol, ftol: convergence tolerances (module docstring).
+        params: start from these params (default ``filter.params``).
+        progress: a progress bar (loss, steps/s) on stderr.
+
+    Returns:
+        A :class:`FitResult`.
+
+    Raises:
+        ValueError: bad arguments, naming them.
+    """
+    if not isinstance(filter, Filter):
+        raise ValueError(f"filter: expected a gmjax Filter, got {type(filter).__name__}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps: must be a positive int, got {steps!r}")
+    is_study = isinstance(data, Scenario)
+    if objective is None:
+        objective = study() if is_study else nll()
+    elif not isinstance(objective, Objective):
+        if not (is_study and callable(objective)):
+            raise ValueError(
+                "objective: expected fitting.nll() or fitting.study(...) (a bare loss needs a Scenario as data)"
+            )
+        objective = study(objective)
+    if (objective.kind == "study") != is_study:
+        want = "a Scenario" if objective.kind == "study" else "measurements (zs or (zs, inputs))"
+        raise ValueError(f"data: the {objective.kind} objective needs {want}, got {type(data).__name__}")
+    if not jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+        raise ValueError(f"key: expected a PRNG key such as jax.random.key(0), got {key!r:.60}")
+    view = param_view(filter.params if params is None else params, fit, constraints)
+    resample = is_study and objective.resample
+    if optimizer is None:
+        optimizer = _default_optimizer(resample)
+    program, opt_init = _step_program(
+        filter, objective, data if is_study else None, optimizer, view.names, view.constraints
+    )
+    data_args = _data_args(data, objective, filter)
+    u = view.unconstrained()
+    state = opt_init(u)
+    bar = Progress(steps, desc="fit", unit="steps", enabled=progress)
+    with bar.compiling("one optimiser step"):
+        compiled, compile_s = program.compile(u, state, key, view.params, data_args)
+    losses: list[float] = []
+    gmaxs: list[float] = []
+    oks: list[bool] = []
+    values: dict[str, list[np.ndarray]] = {n: [] for n in view.names}
+    converged = False
+    t1 = time.perf_counter()
+    for s in range(steps):
+        k = jax.random.fold_in(key, s) if resample else key
+        u, state, v, gmax, ok, natural = compiled(u, state, k, view.params, data_args)
+        losses.append(float(v))
+        gmaxs.append(float(gmax))
+        oks.append(bool(ok))
+        for n in view.names:
+            values[n].append(np.asarray(natural[n]))
+        bar.update(
+            1, postfix=f"loss {losses[-1]:.8g}  |g| {gmaxs[-1]:.2g}{'' if ok else '  (non-finite: skipped)'}"
+        )
+        if _converged(losses, gmaxs, oks, gtol, ftol):
+            converged = True
+            break
+    run_s = time.perf_counter() - t1
+    final = view.params_at(u)
+    final_values = {n: np.asarray(x) for n, x in view.natural(u).items()}
+    history = FitHistory(
+        loss=np.asarray(losses),
+        grad_max=np.asarray(gmaxs),
+        ok=np.asarray(oks),
+        values={n: np.stack(v) for n, v in values.items()},
+    )
+    return FitResult(
+        params=final,
+        values=final_values,
+        loss=losses[-1],
+        history=history,
+        converged=converged,
+        n_steps=len(losses),
+        n_skipped=int(np.sum(~history.ok)),
+        compile_s=compile_s,
+        run_s=run_s,
+    )
+
+
+def _default_optimizer(resample: bool) -> Any:
+    import optax
+
+    return _DEFAULT_OPTIMIZERS.setdefault(resample, optax.adam(0.05) if resample else optax.lbfgs())
+
+
+_DEFAULT_OPTIMIZERS: dict[bool, Any] = {}  # one object each, so the compiled step is kept across fits
+
+
+def _converged(losses: list[float], gmaxs: list[float], oks: list[bool], gtol: float, ftol: float) -> bool:
+    if not oks[-1]:
+        return False
+    if gmaxs[-1] <= gtol:
+        return True
+    if len(losses) < 4 or not all(oks[-4:]):
+        return False
+    last = losses[-4:]
+    scale = max(1.0, abs(last[-1]))
+    return all(abs(a - b) <= ftol * scale for a, b in zip(last, last[1:]))
+
+
+def plot_history(result: FitResult, path: str | None = None, *, title: str | None = None) -> Any:
+    """Plot the loss curve and each scalar fitted value against the step (matplotlib, imported lazily)."""
+    import matplotlib.pyplot as plt
+
+    h = result.history
+    scalars = [n for n, v in h.values.items() if v[0].size <= 4]
+    fig, axes = plt.subplots(1, 1 + len(scalars), figsize=(4 * (1 + len(scalars)), 3.2), squeeze=False)
+    steps = np.arange(1, len(h.loss) + 1)
+    axes[0, 0].plot(steps, h.loss, marker=".")
+    axes[0, 0].set(xlabel="step", ylabel="loss", title="loss" + (" (converged)" if result.converged else ""))
+    for ax, n in zip(axes[0, 1:], scalars):
+        ax.plot(steps, h.values[n].reshape(len(steps), -1), marker=".")
+        ax.set(xlabel="step", title=n)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=90)
+    return fig
