@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmjax._jitcache import CachedProgram, IdentityCache
+from gmjax._plotting import plot_curves
 from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter, StepInputs, run
@@ -581,20 +582,7 @@ def _converged(losses: list[float], gmaxs: list[float], oks: list[bool], gtol: f
 
 def plot_history(result: FitResult, path: str | None = None, *, title: str | None = None) -> Any:
     """Plot the loss curve and each scalar fitted value against the step (matplotlib, imported lazily)."""
-    import matplotlib.pyplot as plt
-
     h = result.history
-    scalars = [n for n, v in h.values.items() if v[0].size <= 4]
-    fig, axes = plt.subplots(1, 1 + len(scalars), figsize=(4 * (1 + len(scalars)), 3.2), squeeze=False)
-    steps = np.arange(1, len(h.loss) + 1)
-    axes[0, 0].plot(steps, h.loss, marker=".")
-    axes[0, 0].set(xlabel="step", ylabel="loss", title="loss" + (" (converged)" if result.converged else ""))
-    for ax, n in zip(axes[0, 1:], scalars):
-        ax.plot(steps, h.values[n].reshape(len(steps), -1), marker=".")
-        ax.set(xlabel="step", title=n)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=90)
-    return fig
+    scalars = {n: v for n, v in h.values.items() if v[0].size <= 4}
+    loss_title = "loss" + (" (converged)" if result.converged else "")
+    return plot_curves(h.loss, scalars, path, title=title, loss_title=loss_title)

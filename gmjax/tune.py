@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmjax._plotting import plot_curves
 from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter
@@ -326,20 +327,4 @@ def plot_history(history: TuneHistory, path: str | None = None, *, title: str | 
     Returns:
         The matplotlib ``Figure``.
     """
-    import matplotlib.pyplot as plt
-
-    names = list(history.params)
-    fig, axes = plt.subplots(1, 1 + len(names), figsize=(4 * (1 + len(names)), 3.2))
-    axes = np.atleast_1d(axes)
-    steps = np.arange(1, len(history.loss) + 1)
-    axes[0].plot(steps, history.loss, marker=".")
-    axes[0].set(xlabel="step", ylabel="loss", title="loss")
-    for ax, n in zip(axes[1:], names):
-        ax.plot(steps, history.params[n], marker=".")
-        ax.set(xlabel="step", ylabel=n, title=n)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=90)
-    return fig
+    return plot_curves(history.loss, history.params, path, title=title, label_y=True)
