@@ -7,7 +7,8 @@ never changes ``jax.config``; enable float64 yourself with ``jax.config.update("
 Modules: :mod:`mixture` (the core type), :mod:`gaussian`, :mod:`metrics`, :mod:`quadrature`,
 :mod:`split`, :mod:`reduction`, :mod:`filters`, :mod:`models`, :mod:`scenarios` (the papers' systems),
 :mod:`montecarlo`, :mod:`pcrb`,
-:mod:`tune` (differentiable threshold tuning), :mod:`studies`, :mod:`params` (``grad``,
+:mod:`fitting` (``fit``: learn any leaf of a filter's params by maximum likelihood or a study loss,
+re-exported here), :mod:`tune` (differentiable threshold tuning), :mod:`studies`, :mod:`params` (``grad``,
 ``value_and_grad``, ``partition``, ``combine`` over the differentiable leaves of a params pytree,
 re-exported here: ``gmjax.grad(loss)(gsf.params)`` skips the mixtures' boolean masks).
 
@@ -20,6 +21,7 @@ Labeau 2014, the active-cluster reduction. Full references: ``docs/references.md
 from importlib import metadata as _metadata
 
 from gmjax import filters as filters
+from gmjax import fitting as fitting
 from gmjax import gaussian as gaussian
 from gmjax import metrics as metrics
 from gmjax import mixture as mixture
@@ -33,6 +35,7 @@ from gmjax import reduction as reduction
 from gmjax import scenarios as scenarios
 from gmjax import split as split
 from gmjax import tune as tune
+from gmjax.fitting import fit as fit
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
 from gmjax.params import combine as combine
@@ -48,6 +51,7 @@ except _metadata.PackageNotFoundError:  # running from a source tree that is not
 __all__ = [
     "GaussianMixture",
     "monte_carlo",
+    "fit",
     "grad",
     "value_and_grad",
     "partition",
@@ -64,6 +68,7 @@ __all__ = [
     "pcrb",
     "scenarios",
     "tune",
+    "fitting",
     "multitarget",
     "params",
     "__version__",

@@ -12,7 +12,8 @@ differentiable leaf below it (a mixture's ``weights``, ``means`` and ``covs``, n
 
 **Constraints.** The optimiser works on unconstrained values ``u``; each fitted leaf is mapped into its
 valid set (:data:`CONSTRAINTS`): a mixture's ``weights`` onto the simplex of its live components
-(softmax of log-weights), its ``covs`` onto SPD matrices (log-Cholesky: ``C = L L^T`` with ``L``'s
+(softmax of log-weights; the weights of an intensity that does not sum to 1, such as a GM-PHD's
+birth, stay positive instead), its ``covs`` onto SPD matrices (log-Cholesky: ``C = L L^T`` with ``L``'s
 diagonal ``exp(u_ii)``), ``means`` unconstrained, every other leaf positive (softplus) unless
 ``constraints={name: "real" | "positive" | "unit" | "simplex" | "spd" | (low, high)}`` says otherwise.
 Results are returned in natural units.
@@ -31,6 +32,8 @@ steps; it then stops early. A step with a non-finite loss or gradient is skipped
 
 from __future__ import annotations
 
+import json
+import os
 import time
 from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
@@ -44,6 +47,7 @@ from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter, StepInputs, run
 from gmjax.models.base import Scenario
+from gmjax.montecarlo import _digest, _read_npz, _remove_stale_tmp, _write_npz
 
 __all__ = [
     "CONSTRAINTS",
@@ -155,9 +159,14 @@ def _check_natural(kind: Any, name: str, x: np.ndarray, mask: np.ndarray | None)
         raise ValueError(f"fit: {name!r} starts at {x.tolist()!r:.120}, which {bad} (constraint {kind!r})")
 
 
-def _default_constraint(name: str) -> str:
+def _default_constraint(name: str, value: np.ndarray, mask: np.ndarray | None) -> str:
+    """``weights`` of a normalised mixture: simplex; of an intensity (a PHD's birth, weights = expected
+    numbers): positive; ``covs``: SPD; ``means``: real; anything else: positive."""
     last = name.rsplit(".", 1)[-1]
-    return {"weights": "simplex", "covs": "spd", "means": "real"}.get(last, "positive")
+    if last == "weights":
+        live = np.ones(value.shape, bool) if mask is None else np.asarray(mask, bool)
+        return "simplex" if abs(float(np.sum(value[live])) - 1.0) < 1e-6 else "positive"
+    return {"covs": "spd", "means": "real"}.get(last, "positive")
 
 
 def _as_constraint(c: Any, name: str) -> Any:
@@ -212,8 +221,8 @@ class ParamView(NamedTuple):
         """The full params pytree with the fitted leaves at ``u`` (traceable)."""
         leaves, treedef, index, _ = self._leaves()
         leaves = list(leaves)
-        for n, v in self.natural(u).items():
-            leaves[index[n]] = v
+        for n, v in self.natural(u).items():  # in the leaf's dtype (an optimiser may promote u)
+            leaves[index[n]] = v.astype(jnp.result_type(leaves[index[n]]))
         return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
@@ -244,21 +253,18 @@ def param_view(
         names += [n for n in hit if n not in names]
     names = [n for n in available if n in names]  # tree order
     constraints = dict(constraints or {})
-    chosen: dict[str, Any] = {}
-    for n in names:
-        rule = next((c for sel, c in constraints.items() if n == sel or n.startswith(sel + ".")), None)
-        chosen[n] = _default_constraint(n) if rule is None else _as_constraint(rule, n)
     unknown = [sel for sel in constraints if not any(n == sel or n.startswith(sel + ".") for n in names)]
     if unknown:
         raise ValueError(f"constraints: {unknown} name no fitted leaf (fitted: {names})")
-    view = ParamView(tuple(names), chosen, params)
-    leaves, _, index, masks = view._leaves()
+    leaves, _, index, masks = ParamView(tuple(names), {}, params)._leaves()
+    start = {n: np.asarray(leaves[index[n]], np.float64) for n in names}
+    mask = {n: None if masks[n] is None else np.asarray(masks[n]) for n in names}
+    chosen: dict[str, Any] = {}
     for n in names:
-        m = masks[n]
-        _check_natural(
-            chosen[n], n, np.asarray(leaves[index[n]], np.float64), None if m is None else np.asarray(m)
-        )
-    return view
+        rule = next((c for sel, c in constraints.items() if n == sel or n.startswith(sel + ".")), None)
+        chosen[n] = _default_constraint(n, start[n], mask[n]) if rule is None else _as_constraint(rule, n)
+        _check_natural(chosen[n], n, start[n], mask[n])
+    return ParamView(tuple(names), chosen, params)
 
 
 # ----------------------------------------------------------------------------- objectives
@@ -285,6 +291,12 @@ def study(loss: Callable | None = None, n_runs: int = 16, *, resample: bool = Fa
     if isinstance(n_runs, bool) or not isinstance(n_runs, int) or n_runs < 1:
         raise ValueError(f"n_runs: must be a positive int, got {n_runs!r}")
     return Objective("study", loss, n_runs, resample)
+
+
+def _is_multitarget_scenario(data: Any) -> bool:
+    from gmjax.multitarget.scenarios import MultiTargetScenario
+
+    return isinstance(data, MultiTargetScenario)
 
 
 def _is_multitarget(filter: Filter) -> bool:
@@ -329,6 +341,15 @@ def _value_fn(
 ) -> Callable:
     """``(u, key, base_params, data) -> ()`` with the data and the fixed params as arguments, so one
     compiled program serves every data set of the same shapes."""
+    if objective.kind == "study" and _is_multitarget_scenario(scenario):
+        from gmjax.multitarget.study import study_loss as mt_study_loss
+
+        def mt_study_value(u, k, base, data):
+            del data
+            params = ParamView(names, constraints, base).params_at(u)
+            return mt_study_loss(filter, scenario, objective.n_runs, k, objective.loss, params=params)
+
+        return mt_study_value
     if objective.kind == "study":
         from gmjax.montecarlo import armse_loss, study_loss
 
@@ -459,6 +480,9 @@ def fit(
     ftol: float = 1e-12,
     params: Any = None,
     progress: bool = True,
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = True,
+    checkpoint_every: float = 10.0,
 ) -> FitResult:
     """Fit the leaves ``fit`` of ``filter.params`` to ``data`` by minimising ``objective``.
 
@@ -479,6 +503,14 @@ def fit(
         gtol, ftol: convergence tolerances (module docstring).
         params: start from these params (default ``filter.params``).
         progress: a progress bar (loss, steps/s) on stderr.
+        checkpoint: a ``.npz`` path: the fit's state (unconstrained values, optimiser state, history)
+            is written there atomically, with a checksum, every ``checkpoint_every`` seconds, at the
+            end and when the fit is interrupted; the same call resumes from it (``resume``) and
+            continues bit for bit as if never stopped. A checkpoint of another fit (leaves,
+            constraints, objective, data, start, key, optimiser state's structure, gmjax version) is
+            refused naming what differs; a corrupt one naming the cause.
+        resume: continue from ``checkpoint`` when it exists (``False``: start again, overwriting it).
+        checkpoint_every: seconds between checkpoint writes.
 
     Returns:
         A :class:`FitResult`.
@@ -490,7 +522,12 @@ def fit(
         raise ValueError(f"filter: expected a gmjax Filter, got {type(filter).__name__}")
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps: must be a positive int, got {steps!r}")
-    is_study = isinstance(data, Scenario)
+    is_study = isinstance(data, Scenario) or _is_multitarget_scenario(data)
+    if _is_multitarget_scenario(data) != _is_multitarget(filter) and is_study:
+        raise ValueError(
+            "data: a MultiTargetScenario goes with a GM-PHD filter (gmjax.multitarget.gm_phd) and a "
+            f"Scenario with a single-target filter; got {type(data).__name__} for this filter"
+        )
     if objective is None:
         objective = study() if is_study else nll()
     elif not isinstance(objective, Objective):
@@ -511,33 +548,46 @@ def fit(
     program, opt_init = _step_program(
         filter, objective, data if is_study else None, optimizer, view.names, view.constraints
     )
+    if not (isinstance(checkpoint_every, (int, float)) and checkpoint_every >= 0):
+        raise ValueError(f"checkpoint_every: must be a number of seconds >= 0, got {checkpoint_every!r}")
     data_args = _data_args(data, objective, filter)
     u = view.unconstrained()
     state = opt_init(u)
+    log = _FitLog(view.names)
+    config = None
+    if checkpoint is not None:
+        config = _fit_config(view, objective, data, data_args, key, state)
+        if resume and os.path.exists(checkpoint):
+            u, state, log = _read_fit_checkpoint(checkpoint, config, u, state, view.names)
+        else:
+            _remove_stale_tmp(checkpoint)
     bar = Progress(steps, desc="fit", unit="steps", enabled=progress)
     with bar.compiling("one optimiser step"):
         compiled, compile_s = program.compile(u, state, key, view.params, data_args)
-    losses: list[float] = []
-    gmaxs: list[float] = []
-    oks: list[bool] = []
-    values: dict[str, list[np.ndarray]] = {n: [] for n in view.names}
-    converged = False
-    t1 = time.perf_counter()
-    for s in range(steps):
-        k = jax.random.fold_in(key, s) if resample else key
-        u, state, v, gmax, ok, natural = compiled(u, state, k, view.params, data_args)
-        losses.append(float(v))
-        gmaxs.append(float(gmax))
-        oks.append(bool(ok))
-        for n in view.names:
-            values[n].append(np.asarray(natural[n]))
-        bar.update(
-            1, postfix=f"loss {losses[-1]:.8g}  |g| {gmaxs[-1]:.2g}{'' if ok else '  (non-finite: skipped)'}"
-        )
-        if _converged(losses, gmaxs, oks, gtol, ftol):
-            converged = True
-            break
+    if log.n_steps:
+        bar.update(min(log.n_steps, steps), postfix=f"resumed from {checkpoint!s} at step {log.n_steps}")
+    converged = log.n_steps > 0 and _converged(log.losses, log.gmaxs, log.oks, gtol, ftol)
+    t1 = last_write = time.perf_counter()
+    try:
+        for s in range(log.n_steps, steps):
+            if converged:
+                break
+            k = jax.random.fold_in(key, s) if resample else key
+            u, state, v, gmax, ok, natural = compiled(u, state, k, view.params, data_args)
+            log.append(float(v), float(gmax), bool(ok), natural)
+            bar.update(
+                1,
+                postfix=f"loss {float(v):.8g}  |g| {float(gmax):.2g}{'' if ok else '  (non-finite: skipped)'}",
+            )
+            converged = _converged(log.losses, log.gmaxs, log.oks, gtol, ftol)
+            if config is not None and time.perf_counter() - last_write >= checkpoint_every:
+                _write_fit_checkpoint(checkpoint, config, u, state, log)
+                last_write = time.perf_counter()
+    finally:  # interrupted or done: what was computed is kept
+        if config is not None and log.n_steps:
+            _write_fit_checkpoint(checkpoint, config, u, state, log)
     run_s = time.perf_counter() - t1
+    losses, gmaxs, oks, values = log.losses, log.gmaxs, log.oks, log.values
     final = view.params_at(u)
     final_values = {n: np.asarray(x) for n, x in view.natural(u).items()}
     history = FitHistory(
@@ -557,6 +607,112 @@ def fit(
         compile_s=compile_s,
         run_s=run_s,
     )
+
+
+class _FitLog:
+    """The history a fit accumulates, one entry per step (kept in checkpoints)."""
+
+    def __init__(self, names: Sequence[str]):
+        self.losses: list[float] = []
+        self.gmaxs: list[float] = []
+        self.oks: list[bool] = []
+        self.values: dict[str, list[np.ndarray]] = {n: [] for n in names}
+
+    @property
+    def n_steps(self) -> int:
+        return len(self.losses)
+
+    def append(self, loss: float, gmax: float, ok: bool, natural: Mapping[str, Array]) -> None:
+        self.losses.append(loss)
+        self.gmaxs.append(gmax)
+        self.oks.append(ok)
+        for n, v in self.values.items():
+            v.append(np.asarray(natural[n]))
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def _fit_config(view: ParamView, objective: Objective, data: Any, data_args: tuple, key, opt_state) -> dict:
+    """What a fit's checkpoint must agree on to be resumed (JSON-able)."""
+    import gmjax
+
+    if objective.kind == "study":
+        data_id = {
+            "scenario": type(data).__name__,
+            "name": data.name,
+            "n_steps": int(data.n_steps),
+            "model": _digest(data.model.params),
+        }
+    else:
+        data_id = {"measurements": _digest(data_args)}
+    leaves, treedef = jax.tree_util.tree_flatten(opt_state)
+    return {
+        "gmjax_version": gmjax.__version__,
+        "fit": list(view.names),
+        "constraints": {n: list(c) if isinstance(c, tuple) else c for n, c in view.constraints.items()},
+        "objective": {
+            "kind": objective.kind,
+            "n_runs": objective.n_runs,
+            "resample": objective.resample,
+            "loss": repr(objective.loss)
+            if isinstance(objective.loss, tuple)
+            else type(objective.loss).__name__,
+        },
+        "data": data_id,
+        "start": _digest(view.params),
+        "key": np.asarray(jax.random.key_data(key)).ravel().tolist(),
+        "optimizer_state": {
+            "structure": str(treedef),
+            "leaves": [[list(np.shape(x)), str(np.asarray(x).dtype)] for x in leaves],
+        },
+    }
+
+
+_FIT_RESTART = "delete it or pass resume=False to start the fit again"
+
+
+def _write_fit_checkpoint(path, config: dict, u: Mapping[str, Array], state: Any, log: _FitLog) -> None:
+    arrays: dict[str, np.ndarray] = {
+        "fit_config": np.asarray(json.dumps(config, sort_keys=True)),
+        "loss": np.asarray(log.losses, np.float64),
+        "grad_max": np.asarray(log.gmaxs, np.float64),
+        "ok": np.asarray(log.oks, bool),
+    }
+    for i, n in enumerate(config["fit"]):
+        arrays[f"u/{i}"] = np.asarray(u[n])
+        arrays[f"values/{i}"] = np.stack(log.values[n])
+    for i, leaf in enumerate(jax.tree_util.tree_leaves(state)):
+        arrays[f"state/{i}"] = np.asarray(leaf)
+    _write_npz(path, arrays)
+
+
+def _read_fit_checkpoint(path, config: dict, u0: dict, state0: Any, names: Sequence[str]) -> tuple:
+    name = os.fspath(path)
+    try:
+        f = _read_npz(path, "checkpoint")
+    except ValueError as e:
+        raise ValueError(f"{e}; {_FIT_RESTART}") from None
+    if "fit_config" not in f or "checksum" not in f:
+        raise ValueError(f"checkpoint: {name!r} is not a gmjax fit checkpoint; {_FIT_RESTART}")
+    old = json.loads(str(f["fit_config"]))
+    if old != config:
+        diff = sorted(k for k in set(old) | set(config) if old.get(k) != config.get(k))
+        raise ValueError(
+            f"checkpoint: {name!r} was written by another fit (differs in: {', '.join(diff)}); "
+            f"{_FIT_RESTART}, or pass another path"
+        )
+    u = {n: jnp.asarray(f[f"u/{i}"], u0[n].dtype) for i, n in enumerate(names)}
+    leaves, treedef = jax.tree_util.tree_flatten(state0)
+    state = jax.tree_util.tree_unflatten(
+        treedef, [jnp.asarray(f[f"state/{i}"], jnp.asarray(x).dtype) for i, x in enumerate(leaves)]
+    )
+    log = _FitLog(names)
+    log.losses = [float(x) for x in f["loss"]]
+    log.gmaxs = [float(x) for x in f["grad_max"]]
+    log.oks = [bool(x) for x in f["ok"]]
+    log.values = {n: list(f[f"values/{i}"]) for i, n in enumerate(names)}
+    return u, state, log
 
 
 def _default_optimizer(resample: bool) -> Any:

@@ -9,6 +9,7 @@ module              contents
 ``scenarios``       multi-target scenarios and their simulation (births, deaths, ``P_D``, clutter)
 ``metrics``         OSPA, GOSPA (with its decomposition) and a relaxed GOSPA, via an exact
                     jit-able assignment (Hungarian algorithm)
+``study``           a differentiable Monte Carlo study loss (mean relaxed GOSPA), for ``gmjax.fit``
 ==================  ===========================================================================
 """
 
@@ -16,6 +17,7 @@ from gmjax.multitarget import metrics as metrics
 from gmjax.multitarget import phd as phd
 from gmjax.multitarget import relaxed as relaxed
 from gmjax.multitarget import scenarios as scenarios
+from gmjax.multitarget import study as study
 from gmjax.multitarget.metrics import GOSPA as GOSPA
 from gmjax.multitarget.metrics import gospa as gospa
 from gmjax.multitarget.metrics import linear_sum_assignment as linear_sum_assignment
@@ -35,6 +37,9 @@ from gmjax.multitarget.scenarios import MultiTargetScenario as MultiTargetScenar
 from gmjax.multitarget.scenarios import range_bearing as range_bearing
 from gmjax.multitarget.scenarios import simulate as simulate
 from gmjax.multitarget.scenarios import vo_ma_linear as vo_ma_linear
+from gmjax.multitarget.study import GospaLoss as GospaLoss
+from gmjax.multitarget.study import gospa_loss as gospa_loss
+from gmjax.multitarget.study import study_loss as study_loss
 
 __all__ = [
     "metrics",
@@ -60,4 +65,8 @@ __all__ = [
     "range_bearing",
     "simulate",
     "vo_ma_linear",
+    "study",
+    "GospaLoss",
+    "gospa_loss",
+    "study_loss",
 ]
