@@ -116,6 +116,7 @@ API_ORDER = [
     "gmjax.scenarios",
     "gmjax.pcrb",
     "gmjax.montecarlo",
+    "gmjax.fitting",
     "gmjax.tune",
     "gmjax.studies",
 ]

@@ -22,12 +22,20 @@ Results are returned in natural units.
 ``-(1 / (B T)) Σ_b Σ_t StepInfo.loglik``, of one ``(T, m)`` or a batch ``(B, T, m)`` of sequences, for
 every filter that reports ``loglik`` (KF/EKF/UKF/CKF, GSF, IMM, PF, ...). :func:`study` (the default with
 a scenario): any loss of :mod:`gmjax.montecarlo` (``armse_loss``, ``anees_loss``, ...) on ``n_runs``
-simulated runs, the same runs every step (common random numbers) unless ``resample``.
+simulated runs, the same runs every step (common random numbers) unless ``resample``; for a GM-PHD
+filter on a :class:`~gmjax.multitarget.MultiTargetScenario`, a per-run loss of
+:mod:`gmjax.multitarget.study` such as the mean relaxed GOSPA ``gospa_loss(c=...)``.
 
 **Convergence.** The default optimiser is ``optax.lbfgs()`` for a deterministic objective and
 ``optax.adam(0.05)`` with ``resample``. A fit has converged when the unconstrained gradient's largest
 entry is below ``gtol`` or the loss changed by less than ``ftol`` (relative) in each of the last 3
 steps; it then stops early. A step with a non-finite loss or gradient is skipped and counted.
+
+**Resume.** With ``checkpoint=path`` the unconstrained values, the optimiser state and the history are
+written atomically (with a checksum) every ``checkpoint_every`` seconds, at the end and on an
+interruption; the same call resumes and continues bit for bit. :mod:`gmjax.tune`'s factory-based loop
+(version 0.1) remains for its users; ``fit`` reaches the same thresholds through ``params``
+(``fit="reducer.rho"``).
 """
 
 from __future__ import annotations

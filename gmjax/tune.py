@@ -15,6 +15,10 @@ differentiable Monte Carlo study (simulation, filtering and scoring of a batch o
 all from :mod:`gmjax.montecarlo` and re-exported here) and updates of unconstrained parameters mapped
 into each parameter's valid range (:class:`Bounds`). :func:`study_scores` / :func:`study_loss` also take
 a ``params`` pytree that replaces ``filter.params``; :func:`plot_history` plots a run.
+
+:func:`gmjax.fit` (:mod:`gmjax.fitting`) is the general form: any leaf of ``filter.params`` (a relaxed
+reducer's thresholds are leaves: ``fit="reducer.rho"``), maximum likelihood or a study loss, constraints,
+convergence and resumable checkpoints. :func:`tune` keeps the filter-factory interface of version 0.1.
 """
 
 from __future__ import annotations

@@ -121,3 +121,20 @@ def test_getting_started_runs_as_written():
     namespace, values = run_script(page("getting_started.md"), "getting_started.md")
     check_filter_example(namespace, values)
     assert namespace["result"].n_runs == 100
+
+
+def test_readme_learn_the_model_block_runs(tmp_path, monkeypatch):
+    """The README's "Learn the model" block, as written (a 300-step GSF fit, about 30 s), in a temporary
+    directory for its checkpoint; run twice, the second call resumes from the finished fit."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    source = readme_section("Learn the model")
+    assert "gmjax.fit(" in source and 'checkpoint="fit.npz"' in source
+    namespace, values = run_script(source, "README.md")
+    fitted = namespace["fitted"]
+    weights, converged = values[1]  # values[0] is jax.config.update's None
+    assert converged and weights.sum() == pytest.approx(1.0)
+    assert (tmp_path / "fit.npz").exists()
+    again, _ = run_script(source, "README.md")
+    assert again["fitted"].n_steps == fitted.n_steps
+    np.testing.assert_array_equal(again["fitted"].history.loss, fitted.history.loss)

@@ -26,9 +26,12 @@ from gmjax.scenarios.jump_system import jump_system
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from reference import gm_noise_np, kalman_np  # noqa: E402
 
-# the scalar model with a 2-component mixture measurement noise of gm_noise_np (its test's truth)
-A, Q, M0, P0 = 0.9, 0.5, 0.0, 2.0
-W_TRUE, MU_TRUE, S2_TRUE = np.array([0.3, 0.7]), np.array([-1.5, 0.8]), np.array([0.4, 1.2])
+# the scalar model of gm_noise_np with a 2-component measurement noise whose components are separated by
+# about 4 innovation standard deviations. (With the overlapping truth of test_reference_gm_noise.py,
+# q = 0.5, means -1.5/0.8, variances 0.4/1.2, the GSF fits equal the grid ML, but the ML estimator is
+# itself biased at T = 300: 2.4-3.7 standard errors over 20 data sets, seeds 100..119.)
+A, Q, M0, P0 = 0.9, 0.1, 0.0, 2.0
+W_TRUE, MU_TRUE, S2_TRUE = np.array([0.3, 0.7]), np.array([-2.0, 1.0]), np.array([0.3, 0.6])
 NOISE = "model.measurement_noise"
 
 
@@ -57,7 +60,7 @@ def _gm_model(weights, means, variances):
 def gm_gsf():
     """A linear GSF with a 2-component measurement noise started at (0.5, 0.5), (-1, 1), (1, 1).
     Runnalls merging keeps its likelihood within ~1e-3 nat of the exact one over 300 steps (pruning to
-    the heaviest components is biased by about 1 nat)."""
+    the 6 heaviest components: 0.3-1.1 nat off)."""
     return filters.build_gsf(
         _gm_model([0.5, 0.5], [-1.0, 1.0], [1.0, 1.0]), "kf", reduction.Runnalls(num_out=6), capacity=6
     )
@@ -335,7 +338,7 @@ def test_fitted_prune_threshold_beats_the_default_on_held_out_runs():
     db = (b - b.mean(0)) / (2 * rb) / b.shape[0]
     contrib = (da - db).mean(1)  # each run's contribution to mean_t(rmse_a - rmse_b)
     diff = float(np.mean(ra - rb))
-    se = float(np.sqrt(a.shape[0] * np.sum(contrib**2)))
+    se = float(np.sqrt(np.sum(contrib**2) * a.shape[0] / (a.shape[0] - 1)))
     assert diff > se, (thr, diff, se)
 
 
