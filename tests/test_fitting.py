@@ -14,6 +14,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 import gmjax
@@ -251,9 +252,21 @@ def test_pf_jitter_study_gradient_matches_central_differences(short_jump):
     """The regularised PF's bandwidth scale: pathwise derivative with the resampling indices held (common
     random numbers); central differences with a small step cross no index change."""
     pf = filters.build_pf(short_jump.model, 64, regularized=True, bandwidth_scale=0.5)
-    _check_gradient(
-        pf, short_jump, fitting.study(armse_loss(), n_runs=4), ["bandwidth_scale"], h=1e-6, rtol=1e-4
+    objective = fitting.study(armse_loss(), n_runs=4)
+    _check_gradient(pf, short_jump, objective, ["bandwidth_scale"], h=1e-6, rtol=1e-4)
+    # and the fit itself runs on it: a few Adam steps move the bandwidth, every step finite
+    res = gmjax.fit(
+        pf,
+        short_jump,
+        objective,
+        fit="bandwidth_scale",
+        key=jax.random.key(3),
+        optimizer=optax.adam(0.2),
+        steps=4,
+        progress=False,
     )
+    assert res.n_steps == 4 and res.n_skipped == 0 and np.all(np.isfinite(res.history.loss))
+    assert res.values["bandwidth_scale"] != pytest.approx(0.5)
 
 
 @pytest.fixture(scope="module")
