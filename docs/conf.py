@@ -110,6 +110,7 @@ API_ORDER = [
     "gmjax.metrics",
     "gmjax.quadrature",
     "gmjax.split",
+    "gmjax.inputs",
     "gmjax.reduction",
     "gmjax.filters",
     "gmjax.models",

@@ -18,8 +18,6 @@ Zhang et al. 2021, PCRBs from Gaussian mixtures; seed 003 Xu et al. 2019, GMRCM;
 Labeau 2014, the active-cluster reduction. Full references: ``docs/references.md``.
 """
 
-from importlib import metadata as _metadata
-
 from gmjax import filters as filters
 from gmjax import fitting as fitting
 from gmjax import gaussian as gaussian
@@ -35,6 +33,7 @@ from gmjax import reduction as reduction
 from gmjax import scenarios as scenarios
 from gmjax import split as split
 from gmjax import tune as tune
+from gmjax._version import __version__ as __version__
 from gmjax.fitting import fit as fit
 from gmjax.mixture import GaussianMixture as GaussianMixture
 from gmjax.montecarlo import monte_carlo as monte_carlo
@@ -42,11 +41,6 @@ from gmjax.params import combine as combine
 from gmjax.params import grad as grad
 from gmjax.params import partition as partition
 from gmjax.params import value_and_grad as value_and_grad
-
-try:
-    __version__ = _metadata.version("gmjax")
-except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0.0.0+unknown"
 
 __all__ = [
     "GaussianMixture",

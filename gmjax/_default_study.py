@@ -100,8 +100,8 @@ def run(
     With ``progress`` each compilation is announced and a bar over the ``(case, approximation)`` pairs
     moves on stderr; the tables go to stdout, with compile and run seconds apart.
     """
-    import gmjax
     from gmjax._progress import Progress
+    from gmjax._version import __version__
 
     if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
         raise ValueError(f"draws: must be a positive int, got {draws!r}")
@@ -110,7 +110,7 @@ def run(
     dtype = str(jnp.zeros(()).dtype)
     results = {}
     print(
-        f"gmjax {gmjax.__version__} (JAX {jax.__version__}): static random cases of Xu et al. (PCM), {draws} draws "
+        f"gmjax {__version__} (JAX {jax.__version__}): static random cases of Xu et al. (PCM), {draws} draws "
         f"each, seed {seed}, {dtype}, on {jax.devices()[0].platform.upper()}"
     )
     first_draws = {}
@@ -155,7 +155,7 @@ def run(
         "draws": draws,
         "seed": seed,
         "dtype": dtype,
-        "gmjax_version": gmjax.__version__,
+        "gmjax_version": __version__,
         "jax_version": jax.__version__,
         "config": {
             "cases": [c._asdict() for c in CASES],

@@ -643,7 +643,7 @@ class _FitLog:
 
 def _fit_config(view: ParamView, objective: Objective, data: Any, data_args: tuple, key, opt_state) -> dict:
     """What a fit's checkpoint must agree on to be resumed (JSON-able)."""
-    import gmjax
+    from gmjax._version import __version__
 
     if objective.kind == "study":
         data_id = {
@@ -656,7 +656,7 @@ def _fit_config(view: ParamView, objective: Objective, data: Any, data_args: tup
         data_id = {"measurements": _digest(data_args)}
     leaves, treedef = jax.tree_util.tree_flatten(opt_state)
     return {
-        "gmjax_version": gmjax.__version__,
+        "gmjax_version": __version__,
         "fit": list(view.names),
         "constraints": {n: list(c) if isinstance(c, tuple) else c for n, c in view.constraints.items()},
         "objective": {

@@ -1057,11 +1057,11 @@ def _study_config(
     keep_traj: bool,
     dtype: Any,
 ) -> dict:
-    import gmjax
+    from gmjax._version import __version__
 
     key_data = np.asarray(jax.random.key_data(key)).ravel().tolist()
     return {
-        "gmjax_version": gmjax.__version__,
+        "gmjax_version": __version__,
         "jax_version": jax.__version__,
         "dtype": str(np.dtype(dtype)),
         "key": {"impl": str(jax.random.key_impl(key)), "data": key_data},

@@ -360,7 +360,7 @@ def results_json(study: Study, results: dict[str, MonteCarloResult], *, seed: in
     Records what a reader needs to trust and redo the numbers: dtype, seed and key, runs, chunk size,
     devices, gmjax and JAX versions (``config``, and each filter's own ``config``).
     """
-    import gmjax
+    from gmjax._version import __version__
 
     first = next(iter(results.values()))
     cfg = first.config or {}
@@ -379,7 +379,7 @@ def results_json(study: Study, results: dict[str, MonteCarloResult], *, seed: in
             "chunk_size": cfg.get("chunk_size"),
             "devices": cfg.get("devices"),
             "filters": list(results),
-            "gmjax_version": gmjax.__version__,
+            "gmjax_version": __version__,
             "jax_version": jax.__version__,
         },
         "filters": {},
@@ -438,7 +438,7 @@ def study_main(
     turns it on unless ``--float32``); ``as_json`` prints strict JSON (``null`` for undefined numbers)
     and nothing else on stdout.
     """
-    import gmjax
+    from gmjax._version import __version__
 
     if name not in STUDIES:
         raise ValueError(f"study: unknown {name!r}; available: {sorted(STUDIES)}")
@@ -451,7 +451,7 @@ def study_main(
     dtype = "float64" if jax.config.read("jax_enable_x64") else "float32"
     if not as_json:
         print(
-            f"gmjax {gmjax.__version__} (JAX {jax.__version__}): study {name}, {n_runs} runs, seed {seed}, "
+            f"gmjax {__version__} (JAX {jax.__version__}): study {name}, {n_runs} runs, seed {seed}, "
             f"{dtype}, on {jax.devices()[0].platform.upper()}",
             flush=True,
         )

@@ -34,27 +34,11 @@ import jax.numpy as jnp
 from gmjax._jitcache import IdentityCache
 from gmjax._types import Array, PRNGKey
 from gmjax._validate import is_concrete
+from gmjax.inputs import StepInputs, step_inputs
 from gmjax.mixture import GaussianMixture
+from gmjax.models.base import LinearGaussianParams
 
 __all__ = ["StepInputs", "StepFlags", "StepInfo", "Filter", "step_inputs", "no_flags", "run", "scan_steps"]
-
-
-class StepInputs(NamedTuple):
-    """Per-step inputs of a filter (a pytree; :func:`run` scans over a leading ``T`` axis).
-
-    Attributes:
-        t: ``()`` the time passed to the model's ``f(x, t)`` and ``h(x, t)`` (an int step index by
-            default).
-        dt: ``()`` the step length, or ``None``.
-        control: a control input ``u_k``, or ``None``.
-        aux: filter-specific per-step data, or ``None`` (the ``matched`` bank filter reads the true
-            active cluster pair ``(2,)`` int here).
-    """
-
-    t: Array
-    dt: Array | None = None
-    control: Any = None
-    aux: Any = None
 
 
 class StepFlags(NamedTuple):
@@ -130,40 +114,13 @@ class Filter(NamedTuple):
     params: Any = None
 
 
-def step_inputs(n_steps: int, inputs: Any = None) -> StepInputs:
-    """Normalise what :func:`run` accepts as inputs into a :class:`StepInputs` with a ``T`` axis.
-
-    Args:
-        n_steps: ``T``.
-        inputs: ``None`` (times ``1..T``), an array ``(T,)`` of times, or a :class:`StepInputs`
-            whose leaves have a leading ``T`` axis.
-
-    Raises:
-        ValueError: a leaf without the leading ``T`` axis, naming the field.
-    """
-    if inputs is None:
-        return StepInputs(t=jnp.arange(1, n_steps + 1, dtype=jnp.int32))
-    if not isinstance(inputs, StepInputs):
-        inputs = StepInputs(t=jnp.asarray(inputs))
-    for name, value in zip(StepInputs._fields, inputs):
-        for leaf in jax.tree_util.tree_leaves(value):
-            shape = jnp.shape(leaf)
-            if not shape or shape[0] != n_steps:
-                raise ValueError(
-                    f"inputs.{name}: expected a leading axis of length T={n_steps} (one entry per "
-                    f"measurement), got shape {shape}"
-                )
-    return inputs
-
-
 def measurement_dim(params: Any) -> int | None:
     """The measurement dimension ``m`` a filter's ``params`` imply, or ``None`` when they do not say.
 
     Read from the first model-level parameter set in the pytree (anything with a
     ``measurement_noise`` mixture: :class:`~gmjax.models.ModelParams`, also inside the IMM's tuple
-    of models) or from the ``H`` matrix of :class:`~gmjax.filters.kf.LinearGaussianParams`.
+    of models) or from the ``H`` matrix of :class:`~gmjax.models.LinearGaussianParams`.
     """
-    from gmjax.filters.kf import LinearGaussianParams  # kf imports this module
 
     def found(x):
         return isinstance(x, LinearGaussianParams) or isinstance(

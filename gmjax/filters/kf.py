@@ -6,9 +6,8 @@ are the Jacobians of ``f``, ``h``), and ``kalman_filter(F, H, Q, R, m0, P0)`` fr
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -24,7 +23,7 @@ from gmjax.filters._core import (
 )
 from gmjax.filters._linearized import affine_parts, as_time_fn, linearized_filter
 from gmjax.filters.base import Filter, StepInputs
-from gmjax.models.base import StateSpaceModel
+from gmjax.models.base import LinearGaussianParams, StateSpaceModel
 
 __all__ = ["LinearGaussianParams", "local_kf", "build_kf", "kalman_filter"]
 
@@ -74,18 +73,6 @@ def build_kf(model: StateSpaceModel) -> Filter:
     check_model(model)
     f, h, _, _ = model.step_fns()
     return from_local(model, linearized_filter(affine_parts(f), affine_parts(h), model.angle_dims))
-
-
-class LinearGaussianParams(NamedTuple):
-    """Parameters of :func:`kalman_filter`: ``x' = F x + v``, ``z = H x + w``, ``v ~ N(0, Q)``,
-    ``w ~ N(0, R)``, ``x_0 ~ N(prior_mean, prior_cov)`` (all plain arrays, all differentiable)."""
-
-    F: jax.Array  # (d, d)
-    H: jax.Array  # (m, d)
-    Q: jax.Array  # (d, d)
-    R: jax.Array  # (m, m)
-    prior_mean: jax.Array  # (d,)
-    prior_cov: jax.Array  # (d, d)
 
 
 def kalman_filter(

@@ -10,10 +10,12 @@ import jax.numpy as jnp
 
 from gmjax._jitcache import IdentityCache
 from gmjax._types import Array, ArrayLike
+from gmjax.inputs import StepInputs, step_inputs
 from gmjax.mixture import GaussianMixture
 
 __all__ = [
     "ModelParams",
+    "LinearGaussianParams",
     "StateSpaceModel",
     "Scenario",
     "simulate",
@@ -83,7 +85,6 @@ _STATE_NOISE_SUPPORT = (
 
 
 def _is_step_inputs(s: Any) -> bool:
-    from gmjax.filters.base import StepInputs
 
     return isinstance(s, StepInputs)
 
@@ -124,7 +125,6 @@ def as_step_fn(fn: Callable | None, call: str = "auto", name: str = "f") -> Call
         def g(x, s):
             if _is_step_inputs(s):
                 return fn(x, s)
-            from gmjax.filters.base import StepInputs
 
             return fn(x, StepInputs(t=s))
 
@@ -153,6 +153,18 @@ class ModelParams(NamedTuple):
     prior: GaussianMixture
     process_noise: GaussianMixture
     measurement_noise: GaussianMixture
+
+
+class LinearGaussianParams(NamedTuple):
+    """Parameters of :func:`gmjax.filters.kalman_filter`: ``x' = F x + v``, ``z = H x + w``, ``v ~ N(0, Q)``,
+    ``w ~ N(0, R)``, ``x_0 ~ N(prior_mean, prior_cov)`` (all plain arrays, all differentiable)."""
+
+    F: Array  # (d, d)
+    H: Array  # (m, d)
+    Q: Array  # (d, d)
+    R: Array  # (m, m)
+    prior_mean: Array  # (d,)
+    prior_cov: Array  # (d, d)
 
 
 class StateSpaceModel(NamedTuple):
@@ -236,8 +248,6 @@ class StateSpaceModel(NamedTuple):
                     f"evaluates the process noise without a state; supported by {_STATE_NOISE_SUPPORT}"
                 )
             if not _is_step_inputs(inputs):
-                from gmjax.filters.base import StepInputs
-
                 inputs = StepInputs(t=inputs)
             return self.process_noise_at(noise, inputs, x)
         if not _is_step_inputs(inputs):
@@ -308,8 +318,6 @@ def inputs_from_times(times: ArrayLike, t0: float = 0.0, control: Any = None) ->
     """
     import numpy as np
 
-    from gmjax.filters.base import StepInputs
-
     times_np = np.asarray(times, float)
     if times_np.ndim != 1 or times_np.size == 0 or not np.all(np.isfinite(times_np)):
         raise ValueError(f"times: expected a non-empty finite 1-D array, got shape {times_np.shape}")
@@ -353,8 +361,6 @@ _EAGER_SIMULATIONS = IdentityCache(maxsize=32)
 
 def _simulate(scenario: Scenario, key: Array, inputs: Any) -> tuple[Array, Array, Any]:
     import jax
-
-    from gmjax.filters.base import step_inputs
 
     model = scenario.model
     f = as_step_fn(scenario.truth_f or model.f, model.call, "truth_f")
@@ -412,8 +418,6 @@ def scenario_from_model(
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
         raise ValueError(f"n_steps: must be a positive int, got {n_steps!r}")
     if inputs is not None:
-        from gmjax.filters.base import step_inputs
-
         inputs = step_inputs(n_steps, inputs)
 
     def draw(gm, key):
