@@ -15,7 +15,9 @@ valid set (:data:`CONSTRAINTS`): a mixture's ``weights`` onto the simplex of its
 (softmax of log-weights; the weights of an intensity that does not sum to 1, such as a GM-PHD's
 birth, stay positive instead), its ``covs`` onto SPD matrices (log-Cholesky: ``C = L L^T`` with ``L``'s
 diagonal ``exp(u_ii)``), ``means`` unconstrained, every other leaf positive (softplus) unless
-``constraints={name: "real" | "positive" | "unit" | "simplex" | "spd" | (low, high)}`` says otherwise.
+``constraints={name: "real" | "positive" | "unit" | "simplex" | "stochastic" | "spd" | (low, high)}``
+says otherwise; an IMM's ``transition`` matrix keeps its rows on the simplex (``"stochastic"``), a
+Kalman filter's ``Q``, ``R`` and ``prior_cov`` stay SPD.
 Results are returned in natural units.
 
 **Objectives.** :func:`nll` (the default with measurements): the negative log-likelihood per step,
@@ -72,7 +74,7 @@ __all__ = [
     "plot_history",
 ]
 
-CONSTRAINTS = ("real", "positive", "unit", "simplex", "spd")
+CONSTRAINTS = ("real", "positive", "unit", "simplex", "stochastic", "spd")
 
 
 # ----------------------------------------------------------------------------- leaves by name
@@ -122,6 +124,8 @@ def _to_natural(kind: Any, u: Array, mask: Array | None) -> Array:
         live = jnp.ones(u.shape, bool) if mask is None else mask
         logits = jnp.where(live, u, -jnp.inf)
         return jnp.where(live, jax.nn.softmax(logits), 0.0)
+    if kind == "stochastic":  # each row on the simplex (a Markov matrix)
+        return jax.nn.softmax(u, axis=-1)
     # spd: u is the log-Cholesky factor (..., d, d): strict lower triangle, log of the diagonal
     d = u.shape[-1]
     eye = jnp.eye(d, dtype=u.dtype)
@@ -143,6 +147,8 @@ def _to_unconstrained(kind: Any, x: Array, mask: Array | None) -> Array:
     if kind == "simplex":
         live = jnp.ones(x.shape, bool) if mask is None else mask
         return jnp.where(live, jnp.log(jnp.where(live, x, 1.0)), 0.0)
+    if kind == "stochastic":
+        return jnp.log(x)
     L = jnp.linalg.cholesky(x)
     d = x.shape[-1]
     eye = jnp.eye(d, dtype=x.dtype)
@@ -161,20 +167,38 @@ def _check_natural(kind: Any, name: str, x: np.ndarray, mask: np.ndarray | None)
         bad = f"must lie in ({kind[0]}, {kind[1]})"
     elif kind == "simplex" and not (np.all(x[live] > 0) and abs(x[live].sum() - 1) < 1e-6):
         bad = "must be > 0 on the live components and sum to 1"
-    elif kind == "spd" and not np.all(np.linalg.eigvalsh(x[live] if x.ndim == 3 else x) > 0):
+    elif kind == "stochastic" and not (
+        x.ndim >= 1 and np.all(x > 0) and np.allclose(x.sum(-1), 1.0, rtol=0.0, atol=1e-6)
+    ):
+        bad = "must be > 0 with every row summing to 1"
+    elif kind == "spd" and not (
+        x.ndim >= 2
+        and x.shape[-1] == x.shape[-2]
+        and np.allclose(x, np.swapaxes(x, -1, -2))
+        and np.all(np.linalg.eigvalsh(x[live] if x.ndim == 3 else x) > 0)
+    ):
         bad = "must be symmetric positive definite"
     if bad is not None:
         raise ValueError(f"fit: {name!r} starts at {x.tolist()!r:.120}, which {bad} (constraint {kind!r})")
 
 
+_COVARIANCE_NAMES = ("covs", "cov", "Q", "R", "P0", "prior_cov")
+
+
 def _default_constraint(name: str, value: np.ndarray, mask: np.ndarray | None) -> str:
-    """``weights`` of a normalised mixture: simplex; of an intensity (a PHD's birth, weights = expected
-    numbers): positive; ``covs``: SPD; ``means``: real; anything else: positive."""
+    """``weights`` (and ``*probs``) that sum to 1: simplex; a mixture's weights that do not (an intensity,
+    such as a PHD's birth: expected numbers): positive; a ``transition`` matrix whose rows sum to 1:
+    stochastic; covariances (``covs``, ``cov``, ``Q``, ``R``, ``P0``, ``prior_cov``): SPD; ``means``:
+    real; anything else: positive."""
     last = name.rsplit(".", 1)[-1]
-    if last == "weights":
+    if last == "weights" or last.endswith("probs"):
         live = np.ones(value.shape, bool) if mask is None else np.asarray(mask, bool)
-        return "simplex" if abs(float(np.sum(value[live])) - 1.0) < 1e-6 else "positive"
-    return {"covs": "spd", "means": "real"}.get(last, "positive")
+        return "simplex" if value.ndim == 1 and abs(float(np.sum(value[live])) - 1.0) < 1e-6 else "positive"
+    if last == "transition" and value.ndim == 2 and np.allclose(value.sum(-1), 1.0, rtol=0.0, atol=1e-6):
+        return "stochastic"
+    if last in _COVARIANCE_NAMES and value.ndim >= 2:
+        return "spd"
+    return "real" if last == "means" else "positive"
 
 
 def _as_constraint(c: Any, name: str) -> Any:

@@ -226,6 +226,39 @@ def test_misspecified_kalman_filter_cannot_learn_the_mixture(gm_gsf):
     assert kl_kf > 2 * kl_gsf, (kl_kf, kl_gsf)
 
 
+def test_imm_transition_matrix_by_likelihood_stays_stochastic_and_its_gradient_matches():
+    """An IMM of a quiet and a noisy measurement regime: the transition matrix is fitted on the simplex of
+    each row (the default for ``transition``), its likelihood gradient against central differences."""
+    rng = np.random.default_rng(4)
+    P_true = np.array([[0.95, 0.05], [0.1, 0.9]])
+    r = np.array([0.2, 4.0])
+    x, mode, zs = 0.0, 0, []
+    for _ in range(120):
+        mode = rng.choice(2, p=P_true[mode])
+        x = 0.9 * x + rng.normal(0.0, np.sqrt(0.3))
+        zs.append([x + rng.normal(0.0, np.sqrt(r[mode]))])
+    models = [
+        StateSpaceModel(
+            f=lambda x, t: 0.9 * x,
+            h=lambda x, t: x,
+            process_noise=GaussianMixture.create([1.0], [[0.0]], [[[0.3]]]),
+            measurement_noise=GaussianMixture.create([1.0], [[0.0]], [[[ri]]]),
+            prior=GaussianMixture.create([1.0], [[0.0]], [[[1.0]]]),
+        )
+        for ri in r
+    ]
+    imm = filters.build_imm(models, [[0.7, 0.3], [0.3, 0.7]], filter="kf")
+    zs = np.asarray(zs)
+    view = fitting.param_view(imm.params, "transition")
+    assert view.constraints == {"transition": "stochastic"}
+    _check_gradient(imm, zs, fitting.nll(), ["transition"], h=1e-5, rtol=1e-5, atol=1e-10)
+    res = gmjax.fit(imm, zs, fit="transition", key=jax.random.key(0), progress=False)
+    P = res.values["transition"]
+    np.testing.assert_allclose(P.sum(1), 1.0, rtol=1e-12)
+    assert res.converged and res.history.loss[-1] < res.history.loss[0]
+    assert P[0, 0] > 0.7 and P[1, 1] > 0.7  # both regimes persist (truth 0.95, 0.9)
+
+
 # ----------------------------------------------------------------------------- study losses
 
 
