@@ -55,6 +55,7 @@ from gmjax._jitcache import CachedProgram, IdentityCache
 from gmjax._plotting import plot_curves
 from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
+from gmjax._version import __version__
 from gmjax.filters.base import Filter, StepInputs, run
 from gmjax.models.base import Scenario
 from gmjax.montecarlo import _digest, _read_npz, _remove_stale_tmp, _write_npz
@@ -667,8 +668,6 @@ class _FitLog:
 
 def _fit_config(view: ParamView, objective: Objective, data: Any, data_args: tuple, key, opt_state) -> dict:
     """What a fit's checkpoint must agree on to be resumed (JSON-able)."""
-    from gmjax._version import __version__
-
     if objective.kind == "study":
         data_id = {
             "scenario": type(data).__name__,

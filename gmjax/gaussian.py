@@ -45,7 +45,7 @@ __all__ = [
     "moment_merge_pair",
 ]
 
-_LOG_2PI = 1.8378770664093453
+_LOG_2PI = 1.8378770664093453  # log(2 pi), the one definition (mixture and the filters read it)
 
 
 class CholeskyResult(NamedTuple):

@@ -21,7 +21,7 @@ from jax.scipy.special import logsumexp
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike, Covs, DTypeLike, Mask, Matrix, Means, PRNGKey, Vector, Weights
 
-_LOG_2PI = 1.8378770664093453
+_LOG_2PI = gaussian._LOG_2PI  # log(2 pi): one definition
 
 __all__ = [
     "GaussianMixture",

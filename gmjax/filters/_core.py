@@ -38,7 +38,7 @@ __all__ = [
     "safe_chol",
 ]
 
-_LOG_2PI = 1.8378770664093453
+_LOG_2PI = gaussian._LOG_2PI  # log(2 pi): one definition
 
 
 class GaussianState(NamedTuple):
