@@ -10,7 +10,7 @@ fitted values beside a reference.
 1. **Kalman filter noise variances by maximum likelihood** (the setting of ``tests/test_fitting.py``):
    scalar ``x_k = 0.95 x_{k-1} + w``, ``z = x + v``, true ``Q = 0.3``, ``R = 1.5``, ``x_0 ~ N(0, 4)``,
    3 sequences of 80 steps, ``fit=["Q", "R"]`` from ``Q = R = 1``. References:
-   ``benchmarks/reference/kalman_np.py``'s ``ml_noise_variances`` (exact likelihood, scipy Nelder-Mead
+   ``references/kalman_np.py``'s ``ml_noise_variances`` (exact likelihood, scipy Nelder-Mead
    + BFGS + Newton polish): its optimum (relative difference of gmjax's) and its wall time; a minimal
    hand-written JAX kernel of the same work (``jit`` of ``value_and_grad`` of a scalar Kalman
    log-likelihood in ``lax.scan``, ``vmap`` over the sequences, softplus-unconstrained ``(Q, R)``, one
@@ -27,7 +27,7 @@ fitted values beside a reference.
    at T = 300: 2.4-3.7 standard errors on 20 data sets, seeds 100..119, measured 2026-12-06),
    ``x_0 ~ N(0, 2)``, ``T = 300``; KF-based GSF with Runnalls reduction to 6
    components, ``fit=["model.measurement_noise"]`` from weights 0.5/0.5, means -1/1, variances 1/1.
-   Reference (``benchmarks/reference/gm_noise_np.py``): on the first data set the point-mass-grid
+   Reference (``references/gm_noise_np.py``): on the first data set the point-mass-grid
    likelihood (exact to rounding on a grid of 201 points over +-14 stationary standard deviations: the
    narrowest width involved, the posterior's std ~0.3, is ~3 grid spacings; the 301-point grid checks
    it) maximised by ``ml_fit_grid`` (full mode only: minutes), beside gmjax's fitted
@@ -60,6 +60,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -69,12 +70,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
 from _common import RESULTS_DIR, block, markdown_table, time_alternating, time_python, write_results  # noqa: E402
-from reference import gm_noise_np, kalman_np  # noqa: E402
 
 import gmjax  # noqa: E402
 from gmjax import GaussianMixture, filters, fitting, montecarlo, reduction  # noqa: E402
 from gmjax.models import StateSpaceModel  # noqa: E402
 from gmjax.scenarios.jump_system import jump_system  # noqa: E402
+from references import gm_noise_np, kalman_np  # noqa: E402
 
 # case 1
 KF_F, KF_Q, KF_R, KF_P0, KF_B, KF_T = 0.95, 0.3, 1.5, 4.0, 3, 80

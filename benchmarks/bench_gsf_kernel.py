@@ -5,7 +5,7 @@ For each case (NL-GSF, R-GSF and PCM-GSF with the grid confidence search; the 1-
 measurement sequences are filtered by
 
 * gmjax: ``jit(vmap(run(build_gsf(...))))`` returning the estimates and their covariances, and
-* the minimal kernel of ``benchmarks/reference/gsf_minimal.py`` (plain ``jax.numpy``: no mixture type,
+* the minimal kernel of ``references/gsf_minimal.py`` (plain ``jax.numpy``: no mixture type,
   masks, flags or validation),
 
 in the same process, alternating, and the benchmark prints compile time apart from run time, µs per
@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 FILTER_NAMES = {"prune": "NL-GSF", "runnalls": "R-GSF", "pcm": "PCM-GSF (grid)"}
 NEWTON_NAME = "PCM-GSF (grid + Newton)"
@@ -80,12 +81,12 @@ def _scenario(system: str, dtype):
 def case(system: str, reducer: str, dtype, n_runs: int, repeats: int, capacity: int = 20) -> list[dict]:
     """Time gmjax and the minimal kernel on one case; returns one row per gmjax variant."""
     from _common import time_alternating, time_jax
-    from reference.gsf_minimal import minimal_gsf
 
     from gmjax.filters import run
     from gmjax.filters.gsf import build_gsf
     from gmjax.models.base import simulate
     from gmjax.reduction import PCM, PruneTop, Runnalls
+    from references.gsf_minimal import minimal_gsf
 
     sc = _scenario(system, dtype)
     pcm_dims = None if system == "1-D" else (0, 2)  # seed 000 §IV-D clusters on position only
@@ -336,7 +337,7 @@ def render_markdown(data: dict) -> str:
         "# gmjax's GSF against a minimal hand-written JAX kernel\n\n"
         "`jit(vmap(...))` over the table's runs, the best of several repeats after compilation"
         f" ({_repeats(data['rows'])}); the minimal kernel"
-        " (`benchmarks/reference/gsf_minimal.py`) is timed before and after each gmjax row and the faster"
+        " (`references/gsf_minimal.py`) is timed before and after each gmjax row and the faster"
         " of the two is used (the float64 PCM-GSF case: the minimal kernel, the grid and grid + Newton in"
         " alternating rounds, one call of each per round). 1-D: seed 000 jump system (120 steps, 3 × 1 noise components); 4-D: seed 000"
         " Table 8 range-bearing system (100 steps, 1 × 4). Capacity 20. PCM-GSF (grid): the seed 000"

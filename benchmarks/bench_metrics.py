@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -19,9 +20,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import markdown_table, time_jax, time_python, write_results  # noqa: E402
-from reference import metrics_np  # noqa: E402
 
 from gmjax import GaussianMixture, metrics  # noqa: E402
+from references import metrics_np  # noqa: E402
 
 
 def random_batch(rng, n_pairs, K, d=2):

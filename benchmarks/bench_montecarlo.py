@@ -1,8 +1,8 @@
 """Batched Monte Carlo throughput: PCM-GSF on seed 000's scalar jump system vs a NumPy per-run loop.
 
 For N = 1, 100, 1000, 10000 runs: compile time, run time and runs/s of one compiled
-``monte_carlo`` kernel, against the plain NumPy GSF (``benchmarks/reference/gsf_np.py``) with the
-NumPy PCM (``benchmarks/reference/pcm_numpy.py``), timed in the same process on a few runs. Both use
+``monte_carlo`` kernel, against the plain NumPy GSF (``references/gsf_np.py``) with the
+NumPy PCM (``references/pcm_numpy.py``), timed in the same process on a few runs. Both use
 the same configuration: EKF components, censored pruning (ρ = 0.9544, N_u = 20), clustering and CI
 merging with the λ grid search over [1, 3] (11 points, no Newton steps, since the NumPy reference
 has none). A second gmjax row adds the 8 Newton steps of seed 000 Table 1 step 7.
@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -26,13 +27,13 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 from _common import markdown_table, write_results  # noqa: E402
-from reference import gsf_np, pcm_numpy  # noqa: E402
 
 from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
 from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
 from gmjax.scenarios.jump_system import jump_system  # noqa: E402
+from references import gsf_np, pcm_numpy  # noqa: E402
 
 N_U = 20
 

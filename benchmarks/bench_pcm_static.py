@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -27,11 +28,11 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import RESULTS_DIR, markdown_table, time_jax, time_python, write_results  # noqa: E402
-from reference import pcm_numpy as ref  # noqa: E402
 
 from gmjax import metrics  # noqa: E402
 from gmjax.mixture import GaussianMixture, pdf  # noqa: E402
 from gmjax.reduction import eise, gmrcm, onehot_membership, pcm, prune_top, runnalls  # noqa: E402
+from references import pcm_numpy as ref  # noqa: E402
 
 CASES = {
     "unimodal": ([0.3, 0.1, 0.4, 0.2], [1, 1.5, 2, 3], [1, 1.2, 0.5, 0.8]),

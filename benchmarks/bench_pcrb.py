@@ -3,7 +3,7 @@
 Reproduces Figs 3-5 (bounds and relative errors against a 10^7-sample Monte Carlo reference, beside
 a 1.2x10^4-sample Monte Carlo) and the paper's wall times (MATLAB: 1400.712 s for K = 64, 225.141 s
 for K = 32, 99.7 % / 99.0 % of it in k-means; 4.157 s for the small Monte Carlo). The same
-Algorithm 2 written as a plain NumPy loop (benchmarks/reference/pcrb_ref.py) runs in the same
+Algorithm 2 written as a plain NumPy loop (references/pcrb_ref.py) runs in the same
 process for the speed ratio.
 
 Writes benchmarks/results/pcrb.json (per-step bounds under ``ungm_time``, ``ungm_gmm_k64``,
@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -33,17 +34,17 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 from _common import RESULTS_DIR, markdown_table, time_jax, time_python, write_results  # noqa: E402
-from reference.pcrb_ref import (  # noqa: E402
-    gh_library,
-    pcrb_gmm_1d_numpy,
-    pcrb_mc_numpy,
-    split_1d,
-)
 
 from gmjax.pcrb import build_pcrb_gmm, pcrb_mc  # noqa: E402
 from gmjax.quadrature import gauss_hermite, smolyak  # noqa: E402
 from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup  # noqa: E402
 from gmjax.scenarios.satellite_pass import satellite  # noqa: E402
+from references.pcrb_ref import (  # noqa: E402
+    gh_library,
+    pcrb_gmm_1d_numpy,
+    pcrb_mc_numpy,
+    split_1d,
+)
 
 PAPER = {
     "gmm_k64_s": 1400.712,

@@ -7,7 +7,7 @@ births ``0.1 N(±[250, 250, 0, 0], diag(100, 100, 25, 25))``, Vo–Ma pruning ``
 dying at 70 and 85.
 
 1. **Throughput.** gmjax filters ``N`` simulated runs in one ``jit(vmap(run))`` kernel (compile time
-   reported apart); Stone Soup's GM-PHD components (``benchmarks/reference/phd_stonesoup.py``: the
+   reported apart); Stone Soup's GM-PHD components (``references/phd_stonesoup.py``: the
    tutorial loop of ``GaussianMixtureHypothesiser`` + ``PHDUpdater`` + ``GaussianMixtureReducer``) filter
    the first few of the *same* measurement sets in the same process. Runs/s of both.
 2. **Accuracy over time.** Mean OSPA (``c = 100 m``, ``p = 1``) and mean cardinality against the truth,
@@ -72,8 +72,8 @@ def throughput_section(args):
     # Stone Soup on the first runs, same measurement sets
     ss_section = None
     try:
-        from benchmarks.reference.phd_stonesoup import StoneSoupGMPHD
-        from benchmarks.reference.phd_stonesoup import extract as ss_extract
+        from references.phd_stonesoup import StoneSoupGMPHD
+        from references.phd_stonesoup import extract as ss_extract
     except ImportError:  # pragma: no cover
         StoneSoupGMPHD = None
     if StoneSoupGMPHD is not None and args.stonesoup_runs > 0:

@@ -6,7 +6,7 @@ sigma in [0.3, 2], target 60; weights drawn uniformly in the range and then norm
 the paper's "sum w_i = 1" requires), every reducer is run as one ``jit(vmap(...))`` kernel over
 all draws; we report the mean and spread of ISE / NISE (seed 000 eqs 42–43), the final count, the
 time per reduction (batched run time / draws) and the compile time apart. The batched Runnalls
-throughput is compared with the plain NumPy per-mixture loops of ``benchmarks/reference``, in
+throughput is compared with the plain NumPy per-mixture loops of ``references``, in
 the same process. Seed 000's Table 5 / 6 figures (one random draw, MATLAB, i5-4590) are printed
 beside ours.
 
@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -29,11 +30,11 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import markdown_table, time_jax, time_python, write_results  # noqa: E402
-from reference import reduction_np as ref  # noqa: E402
 
 from gmjax import reduction as R  # noqa: E402
 from gmjax.metrics import ise, nise  # noqa: E402
 from gmjax.mixture import GaussianMixture  # noqa: E402
+from references import reduction_np as ref  # noqa: E402
 
 CASES = {
     30: {"w": (1e-2, 0.2), "x": (-2.0, 4.0), "s": (0.4, 1.0), "target": 20},

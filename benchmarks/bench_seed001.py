@@ -10,7 +10,7 @@ Timing: each filter's Monte Carlo is one compiled program that maps a single-run
 runs (``lax.map``), so "ms / step" is the cost of one time step of one run, as in the paper, with
 compilation reported apart. The paper reports time per step; we also give each filter's time
 relative to the PF (the paper's PF : AGSSCKF ratio is 96.64 / 11.62 = 8.3 in Table 2). The plain
-NumPy AGSSCKF of ``benchmarks/reference/agsf_np.py`` is timed in the same process.
+NumPy AGSSCKF of ``references/agsf_np.py`` is timed in the same process.
 
 Usage: python benchmarks/bench_seed001.py [--quick] [--runs N] [--tables gamma bearings]
 """
@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -31,7 +32,6 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import RESULTS_DIR, markdown_table, write_results  # noqa: E402
-from reference import agsf_np  # noqa: E402
 
 from gmjax import studies  # noqa: E402
 from gmjax.filters.agsf import AGSFConfig, build_agsf  # noqa: E402
@@ -46,6 +46,7 @@ from gmjax.scenarios.gamma_system import (  # noqa: E402
     eq47_moments,
     gamma_system,
 )
+from references import agsf_np  # noqa: E402
 
 # the filters of `gmjax study gamma` / `gmjax study bearings` (UKF, SCKF, GSUKF, GSCKF, AGSSCKF, PF)
 FACTORIES = studies.STUDIES["gamma"]().filters
@@ -549,7 +550,7 @@ def main(argv=None):
             "",
             note,
             "",
-            f"NumPy reference AGSSCKF (`benchmarks/reference/agsf_np.py`, one run, same process): "
+            f"NumPy reference AGSSCKF (`references/agsf_np.py`, one run, same process): "
             f"{1e3 * np_step:.2f} ms/step, {np_step * 1e3 / ag_ms:.1f}x the compiled AGSSCKF.",
             "",
         ]

@@ -5,7 +5,7 @@ the IMM of :func:`gmjax.filters.imm.build_imm_gsf` (EKF components; each model's
 reduced to ``K`` slots every step) with GMRC, Runnalls, GMRCM (seed 003, regulariser 0.3) and GMRP
 (number-limited pruning) over 100 Monte Carlo runs, and reports the average position RMSE, the
 component count over time, GMRCM's searched confidence range over time and the run time, beside the
-paper's figures. A plain NumPy IMM-GSF (``benchmarks/reference/imm_gsf_np.py``) with GMRP runs the
+paper's figures. A plain NumPy IMM-GSF (``references/imm_gsf_np.py``) with GMRP runs the
 first runs in the same process: same per-run RMSE, and its time gives the throughput ratio.
 
 Usage: python benchmarks/bench_seed003_tracking.py [--quick] [--runs N] [--capacity K]
@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -28,13 +29,13 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import RESULTS_DIR, markdown_table, write_results  # noqa: E402
-from reference import gsf_np, imm_gsf_np  # noqa: E402
 
 from gmjax.filters.imm import build_imm_gsf  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
 from gmjax.montecarlo import filter_run, score_filtered, summarize  # noqa: E402
 from gmjax.reduction import GMRC, GMRCM, PruneTop, Runnalls  # noqa: E402
 from gmjax.scenarios import manoeuvring_target  # noqa: E402
+from references import gsf_np, imm_gsf_np  # noqa: E402
 
 REDUCERS = ("GMRC", "Runnalls", "GMRCM", "GMRP")
 

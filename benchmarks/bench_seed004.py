@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -37,10 +38,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import RESULTS_DIR, block, markdown_table, write_results  # noqa: E402
-from reference.bank_np import bank_filter_np  # noqa: E402
 
 from gmjax.filters import bank  # noqa: E402
 from gmjax.scenarios import uwb_velocity  # noqa: E402
+from references.bank_np import bank_filter_np  # noqa: E402
 
 METHODS = bank.BANK_METHODS
 LABELS = {

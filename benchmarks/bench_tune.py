@@ -14,7 +14,7 @@
 
 Held-out runs use a different key from every training step. Each held-out comparison is paired (the
 same simulated runs for every configuration), so the difference has its own, smaller standard error.
-The NumPy reference (``benchmarks/reference/gsf_np.py`` + ``pcm_numpy.py``: the per-run loop a user
+The NumPy reference (``references/gsf_np.py`` + ``pcm_numpy.py``: the per-run loop a user
 would otherwise write) filters a few of the same held-out runs with the tuned hard PCM-GSF: its
 estimates are compared with gmjax's and its time per run is the baseline of the speed ratio.
 
@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # references/
 
 import jax  # noqa: E402
 
@@ -38,7 +39,6 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
 from _common import RESULTS_DIR, markdown_table, write_results  # noqa: E402
-from reference import gsf_np, pcm_numpy  # noqa: E402
 
 from gmjax import tune as gt  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
@@ -47,6 +47,7 @@ from gmjax.montecarlo import monte_carlo  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
 from gmjax.reduction.relax import soft_split_gate  # noqa: E402
 from gmjax.scenarios.jump_system import JUMP_PRIOR, JUMP_PROCESS_NOISE, jump_system  # noqa: E402
+from references import gsf_np, pcm_numpy  # noqa: E402
 
 TRAIN_SEED = 1
 HELDOUT_SEED = 20_261_122  # never used for training

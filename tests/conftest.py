@@ -1,7 +1,12 @@
 import os
+import sys
+from pathlib import Path
 
 import jax
 import pytest
+
+# the independent references (references/, plain NumPy/SciPy) import as `references` from any test
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # Tests run with float64 available; float32 cases pass dtype=jnp.float32 explicitly.
 jax.config.update("jax_enable_x64", True)

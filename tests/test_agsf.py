@@ -14,8 +14,6 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from reference import agsf_np  # noqa: E402
-
 from gmjax import mixture as gmm  # noqa: E402
 from gmjax.filters import run  # noqa: E402
 from gmjax.filters.agsf import (  # noqa: E402
@@ -34,6 +32,7 @@ from gmjax.mixture import GaussianMixture  # noqa: E402
 from gmjax.models import simulate  # noqa: E402
 from gmjax.scenarios.gamma_system import GAMMA_PRIOR, GAMMA_PROCESS_NOISE, gamma_system  # noqa: E402
 from gmjax.split import split_count, split_gated, split_principal  # noqa: E402
+from references import agsf_np  # noqa: E402
 
 T_SHORT = 36  # covers the switch of eq 45 at k = 30
 

@@ -18,7 +18,7 @@ from gmjax.models import ModelParams
 from gmjax.scenarios import uwb_velocity
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from reference.bank_np import _dare, bank_filter_np  # noqa: E402
+from references.bank_np import _dare, bank_filter_np  # noqa: E402
 
 DT = uwb_velocity.DT
 F = np.array([[1.0, DT], [0.0, 1.0]])

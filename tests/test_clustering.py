@@ -19,7 +19,7 @@ from gmjax.reduction.clustering import (
 )
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from reference import pcm_numpy as ref  # noqa: E402
+from references import pcm_numpy as ref  # noqa: E402
 
 
 def scalar_gm(means, sigmas, weights=None, capacity=None, dtype=jnp.float64):

@@ -1,8 +1,8 @@
 """gmjax.fit / gmjax.fitting (issue 45): learning a filter's parameters by maximum likelihood or a study loss.
 
 Independent references: the exact Kalman likelihood and its scipy ML optimum
-(benchmarks/reference/kalman_np.py), the point-mass grid likelihood and its ML mixture
-(benchmarks/reference/gm_noise_np.py), and central differences of every objective.
+(references/kalman_np.py), the point-mass grid likelihood and its ML mixture
+(references/gm_noise_np.py), and central differences of every objective.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from gmjax.montecarlo import armse_loss
 from gmjax.scenarios.jump_system import jump_system
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from reference import gm_noise_np, kalman_np  # noqa: E402
+from references import gm_noise_np, kalman_np  # noqa: E402
 
 # the scalar model of gm_noise_np with a 2-component measurement noise whose components are separated by
 # about 4 innovation standard deviations. (With the overlapping truth of test_reference_gm_noise.py,

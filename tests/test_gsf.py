@@ -13,8 +13,6 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from reference import gsf_np  # noqa: E402
-
 from gmjax import GaussianMixture  # noqa: E402
 from gmjax import mixture as gmm  # noqa: E402
 from gmjax.filters import StepInputs, build_ekf, run  # noqa: E402
@@ -22,6 +20,7 @@ from gmjax.filters.gsf import build_gsf  # noqa: E402
 from gmjax.models import StateSpaceModel, simulate  # noqa: E402
 from gmjax.reduction import PruneTop  # noqa: E402
 from gmjax.scenarios.jump_system import jump_system  # noqa: E402
+from references import gsf_np  # noqa: E402
 
 
 def as_np(gm: GaussianMixture):

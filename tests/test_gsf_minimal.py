@@ -1,4 +1,4 @@
-"""The minimal PCM-GSF kernel of benchmarks/reference/gsf_minimal.py against gmjax (issue 17).
+"""The minimal PCM-GSF kernel of references/gsf_minimal.py against gmjax (issue 17).
 
 The benchmark ``bench_gsf_kernel.py`` reports gmjax / minimal for PCM-GSF (grid) only if both compute
 the same thing; these tests are that check both ways: the reduction alone on random mixtures with
@@ -19,7 +19,6 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from bench_gsf_kernel import _log_mix  # noqa: E402
-from reference import gsf_minimal  # noqa: E402
 
 from gmjax import GaussianMixture  # noqa: E402
 from gmjax.filters import run  # noqa: E402
@@ -28,6 +27,7 @@ from gmjax.models.base import simulate  # noqa: E402
 from gmjax.reduction import PCM  # noqa: E402
 from gmjax.scenarios.glint_range_bearing import range_bearing  # noqa: E402
 from gmjax.scenarios.jump_system import jump_system  # noqa: E402
+from references import gsf_minimal  # noqa: E402
 
 PCM_ARGS = (0.9544, 1e-3, (1.0, 3.0), 11, 0.5)  # rho, alpha, lambda range, grid size, range scale
 

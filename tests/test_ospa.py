@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment as scipy_lsa
 
-from benchmarks.reference.ospa_np import gospa_ref, ospa_ref
 from gmjax.multitarget import metrics
+from references.ospa_np import gospa_ref, ospa_ref
 
 
 def _random_sets(rng, n_sets, cap_x, cap_y, d=2, scale=10.0):

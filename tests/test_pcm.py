@@ -28,7 +28,7 @@ from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.pcm import PCM, pcm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from reference import pcm_numpy as ref  # noqa: E402
+from references import pcm_numpy as ref  # noqa: E402
 
 eise_module = importlib.import_module("gmjax.reduction.eise")  # the package exports a function `eise`
 

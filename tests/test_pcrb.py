@@ -32,7 +32,7 @@ from gmjax.scenarios.linear_system import linear_system
 from gmjax.split import gauss_hermite_library, split_repeated
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from reference.pcrb_ref import (  # noqa: E402
+from references.pcrb_ref import (  # noqa: E402
     gh_library,
     kalman_covariances,
     pcrb_gmm_1d_numpy,

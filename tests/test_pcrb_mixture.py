@@ -4,7 +4,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.reference import grid_np
 from gmjax import mixture as gmm
 from gmjax.mixture import GaussianMixture
 from gmjax.models import StateSpaceModel
@@ -19,6 +18,7 @@ from gmjax.pcrb import (
 )
 from gmjax.quadrature import gauss_hermite
 from gmjax.split import gauss_hermite_library, split_repeated
+from references import grid_np
 
 jax.config.update("jax_enable_x64", True)
 

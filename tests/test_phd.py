@@ -166,13 +166,13 @@ def test_agrees_with_stonesoup_gm_phd(linear):
        predict + update give the same components (weights, means, covariances to 1e-9 relative).
     2. Each library's own recursion (own reducer) over the sequence: the conventions differ (Stone
        Soup caps a merged weight at 1, redistributes pruned weight, merges against the running merged
-       component with ``d < U``; see benchmarks/reference/phd_stonesoup.py), so the cardinality agrees
+       component with ``d < U``; see references/phd_stonesoup.py), so the cardinality agrees
        to 0.05 per step (measured: <= 0.03 on this sequence) and the extracted sets coincide in size
        and to OSPA < 0.05 m.
     """
     pytest.importorskip("stonesoup")
-    from benchmarks.reference.phd_stonesoup import StoneSoupGMPHD
-    from benchmarks.reference.phd_stonesoup import extract as ss_extract
+    from references.phd_stonesoup import StoneSoupGMPHD
+    from references.phd_stonesoup import extract as ss_extract
 
     model = linear.model
     F, H, Q, R = _linear_parts(model)

@@ -1,4 +1,4 @@
-"""gmjax.reduction against the plain NumPy implementations in benchmarks/reference/reduction_np.py.
+"""gmjax.reduction against the plain NumPy implementations in references/reduction_np.py.
 
 Runnalls, West, Salmond and k-means: 200 random mixtures (seed 000 ranges, 6-12 live components in
 a capacity-12 batch, d = 1 and 2), all reduced in one vmapped call; the merge sequence and labels
@@ -16,10 +16,10 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from reference import reduction_np as ref  # noqa: E402
 from test_reduction_utils import batch, index, random_components  # noqa: E402
 
 from gmjax import reduction as R  # noqa: E402
+from references import reduction_np as ref  # noqa: E402
 
 N_MIX = 200
 CAP = 12

@@ -1,7 +1,7 @@
-"""Self-checks of benchmarks/reference/gm_noise_np.py (plain NumPy/SciPy, no JAX).
+"""Self-checks of references/gm_noise_np.py (plain NumPy/SciPy, no JAX).
 
 * One-component mixture: ``grid_loglik`` equals the Kalman filter's exact log-likelihood
-  (benchmarks/reference/kalman_np.py), missing measurement included.
+  (references/kalman_np.py), missing measurement included.
 * Two-component mixture, short sequence: ``grid_loglik`` equals the exact likelihood summed over
   all ``2^T`` measurement-noise histories (one Kalman filter each).
 * Known state (``q = p0 = 1e-12``, ``a = 1``, ``m0 = 0``): ``grid_loglik`` equals the i.i.d.
@@ -21,7 +21,7 @@ from scipy.special import logsumexp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from reference import gm_noise_np, kalman_np  # noqa: E402
+from references import gm_noise_np, kalman_np  # noqa: E402
 
 W2, MU2, S2 = np.array([0.3, 0.7]), np.array([-1.5, 0.8]), np.array([0.4, 1.2])
 

@@ -1,4 +1,4 @@
-"""Self-checks of benchmarks/reference/kalman_np.py (plain NumPy/SciPy, no JAX).
+"""Self-checks of references/kalman_np.py (plain NumPy/SciPy, no JAX).
 
 * ``kalman_loglik`` equals the joint Gaussian log-density of ``z_1..z_T`` built directly from
   ``F, H, Q, R, m0, P0`` (stacked mean and ``(T m, T m)`` covariance), also with missing rows.
@@ -16,7 +16,7 @@ from scipy.stats import multivariate_normal
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from reference import kalman_np  # noqa: E402
+from references import kalman_np  # noqa: E402
 
 
 def _model():

@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from benchmarks.reference import grid_np
 from gmjax import mixture as gmm
 from gmjax import quadrature
 from gmjax.filters import build_gsf, build_kf, build_ukf, run
@@ -15,6 +14,7 @@ from gmjax.filters.smoother import gaussian_sum_smoother, rts_linear, rts_smooth
 from gmjax.mixture import GaussianMixture
 from gmjax.models import StateSpaceModel
 from gmjax.reduction import Runnalls
+from references import grid_np
 
 jax.config.update("jax_enable_x64", True)
 

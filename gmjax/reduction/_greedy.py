@@ -6,7 +6,7 @@ All three repeatedly merge one pair with the moment-preserving merge (seed 002 e
 ``jit``/``vmap`` and is reverse-mode differentiable (the threshold's gradient is 0 almost
 everywhere, but finite).
 
-Conventions shared with the NumPy references in ``benchmarks/reference/reduction_np.py``:
+Conventions shared with the NumPy references in ``references/reduction_np.py``:
 
 * The merged component of the pair ``(i, j)`` goes to slot ``i`` and slot ``j`` is emptied. For
   Runnalls and Salmond ``i < j`` is the first minimiser of the cost over the upper triangle in

@@ -2,7 +2,7 @@
 
 Repeatedly merges the pair with the smallest upper bound on the KL discrimination of the merge, with
 the moment-preserving merge (seed 002 eqs 70-72), over the engine in :mod:`gmjax.reduction._greedy`
-(conventions shared with ``benchmarks/reference/reduction_np.py`` are listed there).
+(conventions shared with ``references/reduction_np.py`` are listed there).
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from reference import gsf_np
+from references import gsf_np
 
 Mixture = tuple[np.ndarray, np.ndarray, np.ndarray]
 

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.special import logsumexp, ndtr
 
-from reference.kalman_np import central_gradient
+from references.kalman_np import central_gradient
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 

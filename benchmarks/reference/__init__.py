@@ -1,1 +1,0 @@
-"""Plain NumPy per-run reference implementations (the baselines the benchmarks compare against)."""
