@@ -123,13 +123,27 @@ def test_getting_started_runs_as_written():
     assert namespace["result"].n_runs == 100
 
 
-def test_readme_learn_the_model_block_runs(tmp_path, monkeypatch):
-    """The README's "Learn the model" block, as written (a 300-step GSF fit, about 30 s), in a temporary
-    directory for its checkpoint; run twice, the second call resumes from the finished fit."""
+# the "Learn the model" block's small stand-in: a GSF that keeps the heaviest components (it compiles in a
+# fraction of the Runnalls step's time) on a shorter sequence
+SMALL_FIT = [
+    ("reduction.Runnalls(num_out=6), capacity=6", "reduction.PruneTop(num_out=4), capacity=4"),
+    ("[0.3, 0.6]), 300)", "[0.3, 0.6]), 100)"),
+]
+
+
+@pytest.mark.parametrize("as_written", [pytest.param(True, marks=pytest.mark.slow), False])
+def test_readme_learn_the_model_block_runs(tmp_path, monkeypatch, as_written):
+    """The README's "Learn the model" block (as written: a 300-step Runnalls GSF fit, slow; by default
+    with SMALL_FIT's stand-ins), in a temporary directory for its checkpoint; run twice, the second call
+    resumes from the finished fit."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("MPLBACKEND", "Agg")
     source = readme_section("Learn the model")
     assert "gmjax.fit(" in source and 'checkpoint="fit.npz"' in source
+    if not as_written:
+        for written, replacement in SMALL_FIT:
+            assert source.count(written) == 1, written
+            source = source.replace(written, replacement)
     namespace, values = run_script(source, "README.md")
     fitted = namespace["fitted"]
     weights, converged = values[1]  # values[0] is jax.config.update's None

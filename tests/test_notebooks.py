@@ -26,12 +26,13 @@ def test_notebooks_exist_without_outputs():
 # Each notebook takes 10-80 s (mostly compiling its filters; 5 minutes together under CI's two
 # workers). The Monte Carlo and PCRB notebooks run in the default suite; the mixtures / reduction,
 # tuning, bank and GM-PHD ones with -m slow (their APIs, gradients included, are checked by
-# test_mixture, test_reduction, test_tune, test_bank and test_phd).
+# test_mixture, test_reduction, test_tune, test_bank, test_phd and test_fitting).
 _SLOW_NOTEBOOKS = {
     "01_mixtures_and_reduction",
     "04_threshold_tuning",
     "05_active_cluster_reduction",
     "06_gm_phd",
+    "07_learn_glint_noise",  # gmjax.fit: test_fitting, test_docs_examples (docs/fitting.md) by default
 }
 
 
