@@ -137,3 +137,10 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, (np.floating, np.integer)):
         return obj.item()
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def per_run_contrib(sq: np.ndarray) -> tuple[float, np.ndarray]:
+    """ARMSE of ``sq (N, T)`` and each run's linearised contribution (delta method; bench_tune and
+    bench_fit pair two configurations on the same runs through these contributions)."""
+    rmse = np.sqrt(sq.mean(0))
+    return float(rmse.mean()), (sq / (2 * sq.shape[1] * rmse)).sum(1)

@@ -69,7 +69,15 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
-from _common import RESULTS_DIR, block, markdown_table, time_alternating, time_python, write_results  # noqa: E402
+from _common import (  # noqa: E402
+    RESULTS_DIR,
+    block,
+    markdown_table,
+    per_run_contrib,
+    time_alternating,
+    time_python,
+    write_results,
+)
 
 import gmjax  # noqa: E402
 from gmjax import GaussianMixture, filters, fitting, montecarlo, reduction  # noqa: E402
@@ -466,12 +474,6 @@ def gm_section(args) -> dict:
 
 
 # ----------------------------------------------------------------------------- case 3: threshold
-
-
-def per_run_contrib(sq: np.ndarray) -> tuple[float, np.ndarray]:
-    """ARMSE of ``sq (N, T)`` and each run's linearised contribution (delta method; as bench_tune.py)."""
-    rmse = np.sqrt(sq.mean(0))
-    return float(rmse.mean()), (sq / (2 * sq.shape[1] * rmse)).sum(1)
 
 
 def threshold_section(args) -> dict:

@@ -38,7 +38,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
-from _common import RESULTS_DIR, markdown_table, write_results  # noqa: E402
+from _common import RESULTS_DIR, markdown_table, per_run_contrib, write_results  # noqa: E402
 
 from gmjax import tune as gt  # noqa: E402
 from gmjax.filters.gsf import build_gsf  # noqa: E402
@@ -54,12 +54,6 @@ HELDOUT_SEED = 20_261_122  # never used for training
 N_U = 20
 T_RHO = 0.02  # pruning-gate temperature, probability-mass units
 T_LAM = 0.25  # membership temperature in units of λ (= the grid spacing of 9 points on [1, 3])
-
-
-def per_run_contrib(sq: np.ndarray) -> tuple[float, np.ndarray]:
-    """ARMSE of ``sq (N, T)`` and each run's linearised contribution (delta method)."""
-    rmse = np.sqrt(sq.mean(0))
-    return float(rmse.mean()), (sq / (2 * sq.shape[1] * rmse)).sum(1)
 
 
 def compare(results: dict, baseline: str, start: str) -> list[dict]:
