@@ -24,6 +24,7 @@ from gmjax._types import Array, ArrayLike, Matrix, Scalar
 __all__ = [
     "CholeskyResult",
     "symmetrize",
+    "small_matmul",
     "safe_cholesky",
     "repair_spd",
     "solve_lower",
@@ -335,19 +336,42 @@ def kl_divergence(mean1: ArrayLike, cov1: ArrayLike, mean2: ArrayLike, cov2: Arr
 # ----------------------------------------------------------------------------- broadcasting SPD kernels
 
 
-def spd_logdet(P: jax.Array) -> jax.Array:
-    """``log det P`` for ``(..., d, d)`` SPD matrices (closed form for d <= 2)."""
+def small_matmul(a: Array, b: Array) -> Array:
+    """``a @ b`` for ``(..., d, d)`` matrices, unrolled over ``d <= 6`` into elementwise products
+    summed left to right (a plain ``@`` above).
+
+    XLA's CPU ``dot_general`` on batches of tiny matrices calls a kernel per matrix, and hands large
+    batches to kernels that sum in another order; the unrolled form is faster there and gives every
+    batch element the same bits whatever the batch (what :func:`spd_inv`'s ``fixed_order`` is for).
+    """
+    if a.shape[-1] > _UNROLL_MAX_DIM:
+        return a @ b
+    return functools.reduce(jnp.add, [a[..., :, k, None] * b[..., None, k, :] for k in range(a.shape[-1])])
+
+
+def spd_logdet(P: jax.Array, *, fixed_order: bool = False) -> jax.Array:
+    """``log det P`` for ``(..., d, d)`` SPD matrices (closed form for d <= 2).
+
+    ``fixed_order`` (static): for ``3 <= d <= 6`` sum the Cholesky diagonal's logs left to right,
+    elementwise, so the result does not depend on the batch it is computed in.
+    """
     d = P.shape[-1]
     if d == 1:
         return jnp.log(P[..., 0, 0])
     if d == 2:
         return jnp.log(P[..., 0, 0] * P[..., 1, 1] - P[..., 0, 1] * P[..., 1, 0])
     L = _cholesky(P)  # unrolled for d <= 6
+    if fixed_order and d <= _UNROLL_MAX_DIM:
+        return 2.0 * functools.reduce(jnp.add, [jnp.log(L[..., i, i]) for i in range(d)])
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
 
 
-def spd_inv(P: jax.Array) -> jax.Array:
-    """Inverse of ``(..., d, d)`` SPD matrices (closed form for d <= 2), symmetrised."""
+def spd_inv(P: jax.Array, *, fixed_order: bool = False) -> jax.Array:
+    """Inverse of ``(..., d, d)`` SPD matrices (closed form for d <= 2), symmetrised.
+
+    ``fixed_order`` (static): for ``3 <= d <= 6`` form ``L^{-T} L^{-1}`` by :func:`small_matmul`
+    (batch-independent bits) instead of a batched matrix product.
+    """
     d = P.shape[-1]
     if d == 1:
         return 1.0 / P
@@ -362,6 +386,8 @@ def spd_inv(P: jax.Array) -> jax.Array:
         Linv = jax.scipy.linalg.solve_triangular(L, eye, lower=True)
     else:
         Linv = _lower_inverse(_cholesky(P))
+        if fixed_order:
+            return small_matmul(jnp.swapaxes(Linv, -1, -2), Linv)
     return jnp.swapaxes(Linv, -1, -2) @ Linv
 
 
@@ -403,10 +429,10 @@ def _lower_inverse(L: Array) -> Array:
     return jnp.stack([jnp.stack(row, -1) for row in inv], -2)
 
 
-def spd_logpdf(x: jax.Array, m: jax.Array, P: jax.Array) -> jax.Array:
-    """``log N(x; m, P)`` broadcast over leading axes."""
+def spd_logpdf(x: jax.Array, m: jax.Array, P: jax.Array, *, fixed_order: bool = False) -> jax.Array:
+    """``log N(x; m, P)`` broadcast over leading axes (``fixed_order``: see :func:`spd_logdet`)."""
     d = P.shape[-1]
-    return -0.5 * (d * _LOG_2PI + spd_logdet(P) + spd_inv_quad(x - m, P))
+    return -0.5 * (d * _LOG_2PI + spd_logdet(P, fixed_order=fixed_order) + spd_inv_quad(x - m, P))
 
 
 def spd_kl(m1: Array, P1: Array, m2: Array, P2: Array) -> jax.Array:

@@ -14,6 +14,7 @@ from scipy.stats import multivariate_normal, norm
 from gmjax.mixture import GaussianMixture, moments, pad
 from gmjax.reduction.clustering import gauss_cluster
 from gmjax.reduction.eise import (
+    ConfidenceSearch,
     cluster_ise,
     eise,
     hard_eise,
@@ -30,7 +31,10 @@ from gmjax.reduction.pcm import PCM, pcm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from references import pcm_numpy as ref  # noqa: E402
 
-eise_module = importlib.import_module("gmjax.reduction.eise")  # the package exports a function `eise`
+# the search's parts, by module (the package `gmjax.reduction` exports a function named `eise`)
+eise_relaxed = importlib.import_module("gmjax.reduction.eise.relaxed")
+eise_newton = importlib.import_module("gmjax.reduction.eise.newton")
+eise_search = importlib.import_module("gmjax.reduction.eise.search")
 
 K = 12  # one capacity throughout so compiled kernels are shared
 
@@ -224,7 +228,7 @@ def _dense_relaxed_eise(lam, gm, grid, labels, counts, temperature, alpha, metho
     ],
 )
 def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
-    """``relaxed_eise`` works from per-grid-point sums (eise._RelaxedParts); value and derivatives
+    """``relaxed_eise`` works from per-grid-point sums (eise.relaxed._RelaxedParts); value and derivatives
     equal the soft clusters merged and integrated directly, padding included."""
     gm, *_ = random_gm(3 + d, n=9, d=d)
     grid, labels, counts = _grid_for(gm)
@@ -260,18 +264,18 @@ def test_relaxed_eise_from_grid_sums_equals_its_definition(d, method):
 )
 def test_newton_slopes_by_hand_equal_forward_mode(d, method, regularizer):
     """Newton's derivatives of the relaxed EISE, derived by hand
-    (``eise._relaxed_value_and_slopes``), equal forward-over-forward ``jvp`` of its value, and the
+    (``eise.relaxed._relaxed_value_and_slopes``), equal forward-over-forward ``jvp`` of its value, and the
     value they come with equals the value, padding included; float32 to its precision."""
     options = dict(method=method, regularizer=regularizer, ise_scale=0.5)
-    fun = partial(eise_module._relaxed_at, **options)
-    by_hand = partial(eise_module._relaxed_value_and_slopes, **options)
+    fun = partial(eise_relaxed._relaxed_at, **options)
+    by_hand = partial(eise_relaxed._relaxed_value_and_slopes, **options)
     lams = jnp.array([0.7, 1.05, 1.5, 2.0, 2.33, 2.9])  # off, between and on grid points
     # compiled once, for both seeds: the relaxation's parts are arguments
     value, jvp_slopes, hand_slopes = (
-        jax.jit(jax.vmap(f, in_axes=(0, None))) for f in (fun, partial(eise_module._jvp_slopes, fun), by_hand)
+        jax.jit(jax.vmap(f, in_axes=(0, None))) for f in (fun, partial(eise_newton._jvp_slopes, fun), by_hand)
     )
 
-    relaxed_parts = jax.jit(eise_module._relaxed_parts, static_argnums=4)  # (eager: op by op)
+    relaxed_parts = jax.jit(eise_relaxed._relaxed_parts, static_argnums=4)  # (eager: op by op)
 
     def evaluate(dtype, seed):
         gm, *_ = random_gm(seed, n=9, d=d, dtype=dtype)
@@ -305,9 +309,9 @@ def test_relaxed_parts_hh_equals_the_one_hot_products(capacity):
     padding included."""
     gm = random_gm(3, n=capacity - 3, d=2, capacity=capacity)[0]
     grid, labels, counts = _grid_for(gm)
-    parts = jax.jit(lambda gm: eise_module._relaxed_parts(gm, grid, labels, counts, "ci"))(gm)
+    parts = jax.jit(lambda gm: eise_relaxed._relaxed_parts(gm, grid, labels, counts, "ci"))(gm)
     w = np.where(gm.mask, gm.weights, 0.0)
-    S = np.asarray(eise_module.self_overlaps(gm))
+    S = np.asarray(eise_relaxed.self_overlaps(gm))
     live_labels = np.where(np.asarray(gm.mask)[None], np.asarray(labels), -1)
     A = [(lab[:, None] == np.arange(capacity)) * w[:, None] for lab in live_labels]  # (K, C) each
     expected = np.array([[np.sum(a * (S @ b)) for b in A] for a in A])
@@ -352,9 +356,7 @@ NEWTON_TOL = 1e-9  # relative: Newton's hard EISE may exceed the grid's best onl
 @pytest.mark.parametrize("name", list(CASES))
 def test_newton_no_worse_than_grid_on_static_cases(name):
     gm = case(name)
-    res = search_confidence(
-        gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6, alpha=0.01
-    )
+    res = search_confidence(gm, ConfidenceSearch(alpha=0.01))
     assert bool(jnp.isfinite(res.lam_newton)) and 1.0 <= float(res.lam_newton) <= 3.0
     assert int(res.iterations) >= 1
     assert float(res.eise_newton) <= float(res.eise_grid) * (1 + NEWTON_TOL)
@@ -369,7 +371,7 @@ def test_newton_no_worse_than_grid_on_static_cases(name):
 def _newton_problem(gm, alpha=0.01):
     """Newton's inputs as :func:`search_confidence` builds them, from the grid's best ``λ``."""
     grid, labels, counts = _grid_for(gm)
-    parts = eise_module._relaxed_parts(gm, grid, labels, counts, "ci")
+    parts = eise_relaxed._relaxed_parts(gm, grid, labels, counts, "ci")
     lam0 = grid[jnp.argmin(jax.vmap(lambda lab: hard_eise(gm, lab, alpha=alpha)[0])(labels))]
     return (parts, jnp.asarray(0.2), jnp.asarray(alpha)), lam0
 
@@ -378,8 +380,8 @@ def _newton_early_and_fixed():
     """Nine Newton problems stacked (6 random mixtures, the static cases) and Newton on them two
     ways: ``early`` (``while_loop``s, the custom JVP) and ``fixed`` (the 8-step ``scan``)."""
     options = dict(method="ci", regularizer="exp", ise_scale=0.5)
-    fun = partial(eise_module._relaxed_at, **options)
-    slopes = partial(eise_module._relaxed_value_and_slopes, **options)  # as search_confidence takes them
+    fun = partial(eise_relaxed._relaxed_at, **options)
+    slopes = partial(eise_relaxed._relaxed_value_and_slopes, **options)  # as search_confidence takes them
     problems = [_newton_problem(random_gm(s, n=10)[0]) for s in range(6)] + [
         _newton_problem(case(name)) for name in CASES
     ]
@@ -388,10 +390,10 @@ def _newton_early_and_fixed():
     bounds = (1.0, 3.0)
 
     def early(args, lam0):
-        return eise_module._newton(fun, args, lam0, *bounds, 8, 1e-6, args[1], slopes=slopes)
+        return eise_newton._newton(fun, args, lam0, *bounds, 8, 1e-6, args[1], slopes=slopes)
 
     def fixed(args, lam0):
-        return eise_module._newton_loop(slopes, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
+        return eise_newton._newton_loop(slopes, 8, 4, False, args, lam0, *bounds, 1e-6, args[1])
 
     return args, lam0, early, fixed
 
@@ -440,11 +442,11 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
 
 def test_newton_steps_only_the_runs_still_stepping_in_a_large_batch():
     """Under vmap over more than ``2 _STEP_CHUNK_MIN`` runs each Newton pass gathers the runs still
-    stepping and steps them in chunks (:func:`eise._step_until_done`): every run's result is
+    stepping and steps them in chunks (:func:`eise.newton._step_until_done`): every run's result is
     bitwise the fixed ``scan``'s, with per-run ``τ, α`` and with ``τ, α`` the batch shares (as
     :func:`search_confidence` under vmap passes them: constants to XLA)."""
     args, lam0, early, fixed = _newton_early_and_fixed()
-    n = 2 * eise_module._STEP_CHUNK_MIN + 40
+    n = 2 * eise_newton._STEP_CHUNK_MIN + 40
     reps = -(-n // lam0.shape[0])
     big_args = jax.tree_util.tree_map(lambda a: jnp.concatenate([a] * reps)[:n], args)
     shifts = np.repeat(np.linspace(-0.15, 0.15, reps), lam0.shape[0])[:n]
@@ -487,7 +489,7 @@ def test_distinct_pairs_match_a_loop_alone_and_under_vmap():
     many[:, -2:] = -1  # padding
     counts = []
     for labels in (few, many):
-        pairs = jax.jit(eise_module._distinct_pairs)(jnp.asarray(labels))
+        pairs = jax.jit(eise_relaxed._distinct_pairs)(jnp.asarray(labels))
         expected = []
         for m in range(K):
             for g in range(G):
@@ -502,7 +504,7 @@ def test_distinct_pairs_match_a_loop_alone_and_under_vmap():
         assert int(pairs.n_distinct) == n
         counts.append(n)
     assert counts == [K + 4, G * (K - 2)]
-    batched = jax.vmap(eise_module._distinct_pairs)(jnp.asarray(np.stack([few, many])))
+    batched = jax.vmap(eise_relaxed._distinct_pairs)(jnp.asarray(np.stack([few, many])))
     np.testing.assert_array_equal(batched.n_distinct, counts)
 
 
@@ -528,11 +530,11 @@ def test_relaxation_over_distinct_pairs_is_the_full_one(method):
     fuses the programs differently: here a few ulps apart in the slopes (on the benchmark's
     captured 4-D searches every result was bit-identical)."""
     options = dict(method=method, regularizer="exp", ise_scale=0.5)
-    value = partial(eise_module._relaxed_at, **options)
-    slopes = partial(eise_module._relaxed_value_and_slopes, **options)
+    value = partial(eise_relaxed._relaxed_at, **options)
+    slopes = partial(eise_relaxed._relaxed_value_and_slopes, **options)
 
     def evaluate(distinct_pairs, gm, grid, labels, counts, lam):
-        parts = eise_module._relaxed_parts(gm, grid, labels, counts, method, distinct_pairs=distinct_pairs)
+        parts = eise_relaxed._relaxed_parts(gm, grid, labels, counts, method, distinct_pairs=distinct_pairs)
         assert (parts.pairs is None) != distinct_pairs
         args = (parts, jnp.asarray(0.2), jnp.asarray(0.01))
         return value(lam, args), *slopes(lam, args)
@@ -540,12 +542,12 @@ def test_relaxation_over_distinct_pairs_is_the_full_one(method):
     problems = _relaxed_problems_2d(method)
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *problems)
     lams = jnp.asarray([1.3, 1.9, 2.45, 2.0])
-    counts = np.asarray(jax.vmap(lambda labels: eise_module._distinct_pairs(labels).n_distinct)(stacked[2]))
+    counts = np.asarray(jax.vmap(lambda labels: eise_relaxed._distinct_pairs(labels).n_distinct)(stacked[2]))
     n_pairs = stacked[2].shape[1] * stacked[2].shape[2]
-    alone_chunk = eise_module._pair_chunk(n_pairs)
+    alone_chunk = eise_relaxed._pair_chunk(n_pairs)
     assert -(-counts.min() // alone_chunk) == 1 and -(-counts[-1] // alone_chunk) == 4
-    size = eise_module._distinct_pairs(stacked[2][0]).member.size
-    batch_chunk = eise_module._pair_chunk(n_pairs, len(counts))
+    size = eise_relaxed._distinct_pairs(stacked[2][0]).member.size
+    batch_chunk = eise_relaxed._pair_chunk(n_pairs, len(counts))
     ends = np.cumsum(counts)
     split = (ends - counts) // batch_chunk != (ends - 1) // batch_chunk  # a run's pairs in two chunks
     assert counts.sum() > 3 * batch_chunk and np.any(split) and size >= n_pairs
@@ -568,8 +570,7 @@ def test_relaxation_over_distinct_pairs_is_the_full_one(method):
 
 
 def _search_2d(gm, alpha=0.01):
-    options = dict(lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6)
-    return search_confidence(gm, alpha=alpha, **options)
+    return search_confidence(gm, ConfidenceSearch(alpha=alpha))  # [1, 3], 11 points, 8 Newton steps
 
 
 def _search_2d_lam_slope(derivative):
@@ -622,16 +623,12 @@ def test_search_under_vmap_over_no_runs():
     batch."""
     gm = random_gm(0, n=10, d=2)[0]
     none = jax.tree_util.tree_map(lambda a: jnp.stack([a])[:0], gm)
-    res = jax.vmap(
-        lambda g: search_confidence(
-            g, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6, alpha=0.01
-        )
-    )(none)
+    res = jax.vmap(lambda g: search_confidence(g, ConfidenceSearch(alpha=0.01)))(none)
     assert res.lam.shape == (0,) and res.labels.shape == (0, K)
 
 
 def _newton_loop_numpy(f, lam, lo, hi, steps=8, tol=1e-9, radius=0.2, n_backtrack=4):
-    """:func:`eise._newton`'s rule as a plain loop that evaluates ``f(λ) -> (value, f', f'')`` at
+    """:func:`eise.newton._newton`'s rule as a plain loop that evaluates ``f(λ) -> (value, f', f'')`` at
     every ``λ`` it moves to; returns ``(λ, f(λ), converged, iterations, halvings)``."""
     value, g, h = f(lam)
     ok, halvings = False, 0
@@ -678,9 +675,9 @@ def _check_newton_against_the_numpy_loop(centres, widths, lam0):
     expected = [
         _newton_loop_numpy(_narrow_well_numpy(c, w), l, 1.0, 3.0) for c, w, l in zip(centres, widths, lam0)
     ]
-    newton = lambda args, lam: eise_module._newton(_narrow_well, args, lam, 1.0, 3.0, 8, 1e-9, 0.2)  # noqa: E731
-    fixed = lambda args, lam: eise_module._newton_loop(  # noqa: E731
-        partial(eise_module._jvp_slopes, _narrow_well), 8, 4, False, args, lam, 1.0, 3.0, 1e-9, 0.2
+    newton = lambda args, lam: eise_newton._newton(_narrow_well, args, lam, 1.0, 3.0, 8, 1e-9, 0.2)  # noqa: E731
+    fixed = lambda args, lam: eise_newton._newton_loop(  # noqa: E731
+        partial(eise_newton._jvp_slopes, _narrow_well), 8, 4, False, args, lam, 1.0, 3.0, 1e-9, 0.2
     )
     args = (jnp.asarray(centres), jnp.asarray(widths))
     batched = [jax.jit(jax.vmap(f))(args, jnp.asarray(lam0)) for f in (newton, fixed)]
@@ -699,17 +696,17 @@ def test_relaxed_slopes_do_not_depend_on_the_batch(d, method):
     """Under vmap Newton halves in blocks of ``_HALVING_BLOCK`` runs gathered from its batch, so a
     run's relaxed value and slopes must be bitwise the same in a block as in the whole batch, here
     600 runs: large enough that XLA:CPU hands plain reductions and dots to other kernels."""
-    n_runs, block = 600, eise_module._HALVING_BLOCK
+    n_runs, block = 600, eise_newton._HALVING_BLOCK
     rng = np.random.default_rng(3)
     gms = [random_gm(s, n=int(rng.integers(4, K + 1)), d=d)[0] for s in range(n_runs)]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
 
     def parts_of(gm):
-        return eise_module._relaxed_parts(gm, *_grid_for(gm), method, distinct_pairs=True)
+        return eise_relaxed._relaxed_parts(gm, *_grid_for(gm), method, distinct_pairs=True)
 
     parts = jax.jit(jax.vmap(parts_of))(batch)
     lam = jnp.asarray(rng.uniform(1.0, 3.0, n_runs))
-    slopes = partial(eise_module._relaxed_value_and_slopes, method=method, regularizer="exp", ise_scale=0.5)
+    slopes = partial(eise_relaxed._relaxed_value_and_slopes, method=method, regularizer="exp", ise_scale=0.5)
     evaluate = jax.jit(jax.vmap(lambda p, l: slopes(l, (p, jnp.asarray(0.2), jnp.asarray(0.01)))))
     whole = evaluate(parts, lam)
     assert all(np.all(np.isfinite(a)) for a in whole)
@@ -730,19 +727,19 @@ def test_newton_takes_the_derivatives_of_a_halved_candidate():
     assert sum(e[4] for e in expected) >= 2  # halvings happened
 
 
-@pytest.mark.parametrize("n", [3 * eise_module._HALVING_BLOCK + 5, 2 * eise_module._STEP_CHUNK_MIN + 40])
+@pytest.mark.parametrize("n", [3 * eise_newton._HALVING_BLOCK + 5, 2 * eise_newton._STEP_CHUNK_MIN + 40])
 def test_newton_halves_only_the_runs_that_need_it_under_vmap(n):
     """A batch larger than a halving block: the runs whose full step overshoots are gathered and
     halved in blocks of ``_HALVING_BLOCK`` (more than one block here), the others keep their full
     step; every run's iterates are the plain loop's, alone, under vmap and in the fixed ``scan``.
-    The larger batch steps in chunks of the runs still stepping (:func:`eise._step_until_done`),
+    The larger batch steps in chunks of the runs still stepping (:func:`eise.newton._step_until_done`),
     and halves within them."""
     rng = np.random.default_rng(1)
     centres, widths = rng.uniform(1.5, 2.5, n), rng.uniform(0.05, 0.1, n)
     lam0 = centres + widths * rng.choice([-1.0, 1.0], n) * rng.uniform(0.5, 1.0, n)  # half overshoot at once
     expected = _check_newton_against_the_numpy_loop(centres, widths, lam0)
     halving = sum(e[4] > 0 for e in expected)
-    assert eise_module._HALVING_BLOCK < halving < n  # several blocks halve, some runs never do
+    assert eise_newton._HALVING_BLOCK < halving < n  # several blocks halve, some runs never do
 
 
 def test_first_where_is_the_stable_argsort_of_the_runs_that_need_it():
@@ -755,7 +752,7 @@ def test_first_where_is_the_stable_argsort_of_the_runs_that_need_it():
         expected = np.full(size, B)
         n = int(need.sum())
         expected[:n] = np.argsort(~need, kind="stable")[:n]
-        for fn in (eise_module._first_where, jax.jit(eise_module._first_where, static_argnums=1)):
+        for fn in (eise_newton._first_where, jax.jit(eise_newton._first_where, static_argnums=1)):
             got = np.asarray(fn(jnp.asarray(need), size))
             assert got.dtype == np.int32
             np.testing.assert_array_equal(got, expected)
@@ -769,9 +766,7 @@ def test_newton_stays_where_the_relaxation_is_flat(dtype):
     gm = GaussianMixture.create(
         [0.5, 0.3, 0.2], [[0.0], [50.0], [100.0]], np.ones((3, 1, 1)), capacity=K, dtype=dtype
     )
-    res = search_confidence(
-        gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6, alpha=0.01
-    )
+    res = search_confidence(gm, ConfidenceSearch(alpha=0.01))
     assert np.all(np.asarray(res.grid_counts) == 3)  # nothing merges at any grid point
     assert float(res.lam_newton) == float(res.lam_grid) == float(res.lam)
     assert bool(res.newton_ok) and int(res.iterations) == 1
@@ -792,7 +787,7 @@ def test_clustering_unless_known_skips_the_known_runs_alone_and_under_vmap():
         return gauss_cluster(gm, lam).labels
 
     def labels(known, known_labels, gm, lam):
-        return eise_module._cluster_unless_known(cluster, known, known_labels, gm, lam)
+        return eise_search._cluster_unless_known(cluster, known, known_labels, gm, lam)
 
     fresh = jax.vmap(cluster)(batch, lam)
     expected = np.where(np.asarray(known)[:, None], 7, np.asarray(fresh))
@@ -800,7 +795,7 @@ def test_clustering_unless_known_skips_the_known_runs_alone_and_under_vmap():
     for i in (0, 1, 2, 3):  # alone
         one = jax.tree_util.tree_map(lambda a: a[i], batch)
         np.testing.assert_array_equal(jax.jit(labels)(known[i], wrong[i], one, lam[i]), expected[i])
-    assert 2 * eise_module._CLUSTER_BLOCK < int(jnp.sum(~known)) < 40  # three blocks, some known
+    assert 2 * eise_search._CLUSTER_BLOCK < int(jnp.sum(~known)) < 40  # three blocks, some known
 
 
 def test_search_newton_clustering_is_the_clustering_at_its_lambda():
@@ -808,10 +803,7 @@ def test_search_newton_clustering_is_the_clustering_at_its_lambda():
     judgment matrix, or clustered afresh) are those of clustering at that λ, under vmap."""
     gms = [random_gm(s, n=10)[0] for s in range(24)] + [case(name) for name in CASES]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
-    search = partial(
-        search_confidence, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=8, temperature=0.2, tol=1e-6
-    )
-    res = jax.jit(jax.vmap(lambda g: search(g, alpha=0.01)))(batch)
+    res = jax.jit(jax.vmap(lambda g: search_confidence(g, ConfidenceSearch(alpha=0.01))))(batch)
     fresh = jax.vmap(lambda g, lam: gauss_cluster(g, lam).labels)(batch, res.lam)
     np.testing.assert_array_equal(res.labels, fresh)
     assert int(jnp.sum(~res.used_fallback)) > 0 and bool(jnp.any(res.lam != res.lam_grid))
@@ -820,9 +812,7 @@ def test_search_newton_clustering_is_the_clustering_at_its_lambda():
 def test_search_grid_matches_numpy_reference():
     w, m, P = case_np("multimodal")
     gm = case("multimodal")
-    res = search_confidence(
-        gm, lam_lo=1.0, lam_hi=3.0, grid_size=11, newton_steps=0, temperature=0.2, tol=1e-6, alpha=0.001
-    )
+    res = search_confidence(gm, ConfidenceSearch(newton_steps=0, alpha=0.001))
     lam_ref, (_, _, _, _, e_ref) = ref.pcm_grid(w, m, P, prune=False, grid=11)
     assert float(res.lam) == pytest.approx(lam_ref)
     assert float(res.eise) == pytest.approx(e_ref, rel=1e-10)

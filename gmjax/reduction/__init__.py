@@ -23,7 +23,8 @@ module                 algorithm
 ``brute_force``        exhaustive ISE-optimal partition (small K)
 ``refine``             ISE refinement of a reduced mixture by gradient descent
 ``clustering``         Gauss clustering with confidence ranges (Xu et al., PCM)
-``eise``               the EISE cost and the confidence-range search (Xu et al.)
+``eise``               the EISE cost and the confidence-range search (Xu et al.; a package:
+                       ``ise``, ``relaxed``, ``newton``, ``search``)
 ``pcm``                prune-cluster-merge (Xu et al., PCM)
 ``gmrcm``              cluster-merge with a low-weight history (Xu et al., GMRCM; stateful)
 ``relax``              soft / straight-through relaxations behind the reducers' ``mode``
@@ -49,6 +50,8 @@ from gmjax.reduction.brute_force import brute_force as brute_force
 from gmjax.reduction.clustering import gauss_cluster as gauss_cluster
 from gmjax.reduction.cowa import COWA as COWA
 from gmjax.reduction.cowa import cowa as cowa
+from gmjax.reduction.eise import ConfidenceSearch as ConfidenceSearch
+from gmjax.reduction.eise import EISECriterion as EISECriterion
 from gmjax.reduction.eise import eise as eise
 from gmjax.reduction.eise import onehot_membership as onehot_membership
 from gmjax.reduction.eise import search_confidence as search_confidence
@@ -122,6 +125,8 @@ __all__ = [
     # clustering and the confidence search of PCM / GMRCM (seeds 000, 003)
     "gauss_cluster",
     "search_confidence",
+    "ConfidenceSearch",
+    "EISECriterion",
     "eise",
     "onehot_membership",
     # costs

@@ -40,10 +40,9 @@ from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, make_info
-from gmjax.reduction.clustering import gauss_cluster
-from gmjax.reduction.eise import hard_eise, search_confidence
+from gmjax.reduction.eise import ConfidenceSearch, EISECriterion
 from gmjax.reduction.merge import merge_labels
-from gmjax.reduction.pcm import fixed_result, search_aux, validate_search_args
+from gmjax.reduction.pcm import search_aux, validate_search_args
 
 __all__ = ["GMRCMState", "gmrcm", "GMRCM", "init_state"]
 
@@ -145,44 +144,24 @@ def gmrcm(
     if not isinstance(state, GMRCMState) or jnp.shape(state.low_count) != (K,):
         raise ValueError(f"state: expected a GMRCMState with low_count of shape ({K},)")
     dims = None if dims is None else tuple(int(i) for i in dims)
-    return _gmrcm_core(
-        gm,
-        state,
-        alpha,
-        lam,
-        tuple(lambda_range),
-        temperature,
-        tol,
-        range_scale,
-        weight_threshold,
-        large_factor,
-        low_steps=low_steps,
+    search = ConfidenceSearch(
+        lambda_range=tuple(lambda_range),
+        alpha=alpha,
+        temperature=temperature,
+        tol=tol,
+        range_scale=range_scale,
         grid_size=grid_size,
         newton_steps=newton_steps,
         dims=dims,
-        capacity=cap,
+        criterion=EISECriterion.seed003(),
+    )
+    return _gmrcm_core(
+        gm, state, lam, search, weight_threshold, large_factor, low_steps=low_steps, capacity=cap
     )
 
 
-@partial(jax.jit, static_argnames=("low_steps", "grid_size", "newton_steps", "dims", "capacity"))
-def _gmrcm_core(
-    gm,
-    state,
-    alpha,
-    lam,
-    lambda_range,
-    temperature,
-    tol,
-    range_scale,
-    weight_threshold,
-    large_factor,
-    *,
-    low_steps,
-    grid_size,
-    newton_steps,
-    dims,
-    capacity,
-):
+@partial(jax.jit, static_argnames=("low_steps", "capacity"))
+def _gmrcm_core(gm, state, lam, search, weight_threshold, large_factor, *, low_steps, capacity):
     K = gm.capacity
     cap = capacity
     dtype = gm.means.dtype
@@ -201,6 +180,7 @@ def _gmrcm_core(
     work = sanitize(GaussianMixture(w * scale, gm.means, gm.covs, keep))
 
     # Step 4(1): large covariances pass through unclustered.
+    dims = search.dims
     covs_c = work.covs if dims is None else work.covs[:, jnp.asarray(dims)][:, :, jnp.asarray(dims)]
     tr = jnp.trace(covs_c, axis1=-2, axis2=-1)
     n_keep = jnp.sum(keep.astype(dtype))
@@ -213,32 +193,7 @@ def _gmrcm_core(
     n_ref = jnp.sum(cl_mask.astype(jnp.int32))
 
     # Steps 5–7: search λ, judgment matrix, clusters, re-assignment; EISE of eq 10.
-    if lam is None:
-        res = search_confidence(
-            to_cluster,
-            lam_lo=lambda_range[0],
-            lam_hi=lambda_range[1],
-            grid_size=grid_size,
-            newton_steps=newton_steps,
-            temperature=temperature,
-            tol=tol,
-            alpha=alpha,
-            method="moment",
-            regularizer="log10",
-            ise_scale=1.0,
-            dims=dims,
-            triangular=True,
-            subset_rule="absorb",
-            range_scale=range_scale,
-        )
-    else:
-        cl = gauss_cluster(
-            to_cluster, lam, dims=dims, triangular=True, subset_rule="absorb", range_scale=range_scale
-        )
-        value, merged, n = hard_eise(
-            to_cluster, cl.labels, alpha=alpha, method="moment", regularizer="log10", ise_scale=1.0
-        )
-        res = fixed_result(to_cluster, lam, cl.labels, value, merged, n)
+    res = search(to_cluster, lam)  # searched (lam None) or at the given λ
 
     # Step 8: moment-preserving merge (eqs 16–18); passed-through slots are their own cluster.
     slots = jnp.arange(K, dtype=jnp.int32)

@@ -41,18 +41,18 @@ import jax.numpy as jnp
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax._types import Array, ArrayLike
+from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
-from gmjax.reduction.clustering import gauss_cluster
 from gmjax.reduction.eise import (
+    ConfidenceSearch,
+    EISECriterion,
     SearchResult,
     eise,
     hard_eise,
     merge_membership,
     onehot_membership,
-    search_confidence,
 )
 from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.prune import prune_censored
@@ -129,33 +129,6 @@ def search_aux(res: SearchResult, n_ref: Array) -> dict[str, Array]:
         "newton_ok": res.newton_ok,
         "used_fallback": res.used_fallback,
     }
-
-
-def fixed_result(
-    gm: GaussianMixture, lam: ArrayLike, labels: Array, value: Array, merged: GaussianMixture, n: Array
-) -> SearchResult:
-    """A :class:`SearchResult` for a clustering at a given ``λ`` (no search)."""
-    dtype = gm.means.dtype
-    lam = jnp.asarray(lam, dtype)
-    nan = jnp.asarray(jnp.nan, dtype)
-    return SearchResult(
-        lam,
-        value,
-        labels,
-        merged,
-        n,
-        lam[None],
-        value[None],
-        n[None],
-        lam,
-        value,
-        lam,
-        value,
-        nan,
-        jnp.zeros((), jnp.int32),
-        jnp.zeros((), bool),
-        jnp.zeros((), bool),
-    )
 
 
 @_util.guard_nan(
@@ -262,65 +235,26 @@ def pcm(
     cap = _validate.validate_capacity(capacity, gm)
     dims = None if dims is None else tuple(dims)
 
-    if mode != "hard":
-        return _soft_pcm_core(
-            gm,
-            rho,
-            lam,
-            alpha,
-            gate_temperature,
-            temperature,
-            tuple(lambda_range),
-            range_scale,
-            grid_size=grid_size,
-            max_components=max_components,
-            dims=dims,
-            merge=merge,
-            prune=prune,
-            mode=mode,
-            capacity=cap,
-        )
-    return _pcm_core(
-        gm,
-        rho,
-        alpha,
-        lam,
-        tuple(lambda_range),
-        temperature,
-        tol,
-        range_scale,
-        max_components=max_components,
+    search = ConfidenceSearch(
+        lambda_range=tuple(lambda_range),
+        alpha=alpha,
+        temperature=temperature,
+        tol=tol,
+        range_scale=range_scale,
         grid_size=grid_size,
         newton_steps=newton_steps,
         dims=dims,
-        merge=merge,
-        prune=prune,
-        capacity=cap,
+        criterion=EISECriterion.seed000(merge),
+    )
+    core = _pcm_core if mode == "hard" else partial(_soft_pcm_core, mode=mode)
+    return core(
+        gm, rho, lam, search, gate_temperature, max_components=max_components, prune=prune, capacity=cap
     )
 
 
-@partial(
-    jax.jit,
-    static_argnames=("max_components", "grid_size", "newton_steps", "dims", "merge", "prune", "capacity"),
-)
-def _pcm_core(
-    gm,
-    rho,
-    alpha,
-    lam,
-    lambda_range,
-    temperature,
-    tol,
-    range_scale,
-    *,
-    max_components,
-    grid_size,
-    newton_steps,
-    dims,
-    merge,
-    prune,
-    capacity,
-):
+@partial(jax.jit, static_argnames=("max_components", "prune", "capacity"))
+def _pcm_core(gm, rho, lam, search, gate_temperature, *, max_components, prune, capacity):
+    del gate_temperature  # the relaxed modes' (one signature for both cores)
     K = gm.capacity
     slots = jnp.arange(K, dtype=jnp.int32)
     # At most N_u components survive the pruning, so cluster and merge in N_u slots: the overlap
@@ -336,32 +270,9 @@ def _pcm_core(
         pruned_mass = jnp.zeros((), gm.weights.dtype)
     n_ref = jnp.sum(work.mask.astype(jnp.int32))
 
-    if lam is None:
-        res = search_confidence(
-            work,
-            lam_lo=lambda_range[0],
-            lam_hi=lambda_range[1],
-            grid_size=grid_size,
-            newton_steps=newton_steps,
-            temperature=temperature,
-            tol=tol,
-            alpha=alpha,
-            method=merge,
-            regularizer="exp",
-            ise_scale=0.5,
-            dims=dims,
-            triangular=False,
-            subset_rule="split",
-            range_scale=range_scale,
-        )
-    else:
-        cl = gauss_cluster(work, lam, dims=dims, range_scale=range_scale)
-        value, merged, n = hard_eise(
-            work, cl.labels, alpha=alpha, method=merge, regularizer="exp", ise_scale=0.5
-        )
-        res = fixed_result(work, lam, cl.labels, value, merged, n)
-
-    merged = merge_labels(work, res.labels, Kw, merge)  # output slot = cluster head (eqs 38–39)
+    res = search(work, lam)  # step 7: searched (lam None) or at the given λ
+    # output slot = cluster head (eqs 38–39)
+    merged = merge_labels(work, res.labels, Kw, search.criterion.method)
     labels_in = jnp.where(to_work >= 0, res.labels[jnp.maximum(to_work, 0)], -1)
     out, labels_out, overflow, _ = _util.finalize(gm, merged, labels_in, capacity)
     info = make_info(
@@ -409,27 +320,8 @@ def _gated_step(gm, rho, gate_temperature, relaxed, *, max_components, prune, mo
     )
 
 
-@partial(
-    jax.jit, static_argnames=("grid_size", "max_components", "dims", "merge", "prune", "mode", "capacity")
-)
-def _soft_pcm_core(
-    gm,
-    rho,
-    lam,
-    alpha,
-    gate_temperature,
-    temperature,
-    lambda_range,
-    range_scale,
-    *,
-    grid_size,
-    max_components,
-    dims,
-    merge,
-    prune,
-    mode,
-    capacity,
-):
+@partial(jax.jit, static_argnames=("max_components", "prune", "mode", "capacity"))
+def _soft_pcm_core(gm, rho, lam, search, gate_temperature, *, max_components, prune, mode, capacity):
     """PCM at a fixed ``λ`` with relaxed pruning and relaxed memberships (``mode`` soft / ST).
 
     The pruning uses :func:`censored_gates` (``T_ρ``) and the clustering :func:`soft_membership`
@@ -447,16 +339,19 @@ def _soft_pcm_core(
     dtype = gm.means.dtype
     K = gm.capacity
     Kw = K if (not prune or max_components is None) else min(K, max_components)
-    T_lam = jnp.asarray(temperature, dtype)
+    alpha, merge = search.alpha, search.criterion.method
+    T_lam = jnp.asarray(search.temperature, dtype)
     relaxed = (jnp.asarray(gate_temperature, dtype) > 0) | (T_lam > 0)
     work, g_work, to_work, pruned_mass, p_overflow, n_gates = _gated_step(
         gm, rho, gate_temperature, relaxed, max_components=max_components, prune=prune, mode=mode, Kw=Kw
     )
     n_ref = jnp.sum(work.mask.astype(jnp.int32))
-    lo, hi = (jnp.asarray(v, dtype) for v in lambda_range)
-    grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, grid_size, dtype=dtype)
+    lo, hi = (jnp.asarray(v, dtype) for v in search.lambda_range)
+    grid = lo + (hi - lo) * jnp.linspace(0.0, 1.0, search.grid_size, dtype=dtype)
     lam = jnp.asarray(lam, dtype)
-    A, pi, grid_labels, labels = soft_membership(work, lam, grid, T_lam, dims=dims, range_scale=range_scale)
+    A, pi, grid_labels, labels = soft_membership(
+        work, lam, grid, T_lam, dims=search.dims, range_scale=search.range_scale
+    )
 
     # hard clustering at λ: exactly pcm(lam=λ)'s merge and EISE
     merged_hard = merge_labels(work, labels, Kw, merge)
