@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> dict:
         load_before = f.read().split()[:3]
     mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("runs",))
     _timed_compile(jax.jit(lambda x: x * 2 + 1), (np.ones(3),))  # warm LLVM and the profiler
-    simulation = mc._simulation_program(scenario, CHUNK, mesh)
+    simulation = mc.driver._simulation_program(scenario, CHUNK, mesh)
     key = jax.random.key(0)
     sims = simulation.jitted(key, np.uint32(0))
     start = np.uint32(0)
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> dict:
         results["simulation"]["study"].append(_timed_compile(simulation.jitted, (key, start)))
     for name in names:
         filt = builders[name](scenario)
-        program, _ = mc._chunk_program(filt, scenario, None, CHUNK, False, False, mesh)
+        program, _ = mc.driver._chunk_program(filt, scenario, None, CHUNK, False, False, mesh)
         alone = jax.jit(jax.vmap(lambda z, inputs, k, f=filt: run(f, z, inputs, key=k)[1]))
         results[name] = {"study": [], "alone": []}
         for _ in range(repeats):

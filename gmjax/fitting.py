@@ -58,7 +58,7 @@ from gmjax._types import Array, PRNGKey
 from gmjax._version import __version__
 from gmjax.filters.base import Filter, StepInputs, run
 from gmjax.models.base import Scenario
-from gmjax.montecarlo import _digest, _read_npz, _remove_stale_tmp, _write_npz
+from gmjax.montecarlo.files import _digest, _read_npz, _remove_stale_tmp, _write_npz
 
 __all__ = [
     "CONSTRAINTS",

@@ -98,7 +98,7 @@ def test_filters_of_one_scenario_share_its_compiled_simulation():
     b = montecarlo.monte_carlo(build_gsf(sc.model, "ekf", PruneTop(num_out=5), capacity=5), sc, 4, key, **kw)
     np.testing.assert_array_equal(a.scores.truths, b.scores.truths)
     mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("runs",))
-    program = montecarlo._simulation_program(sc, 2, mesh)
+    program = montecarlo.driver._simulation_program(sc, 2, mesh)
     assert len(program._compiled) == 1  # compiled for the first study, reused by the second
     # the same runs as the differentiable path, which simulates inside its one program
     ref = montecarlo.study_scores(build_ekf(sc.model), sc, 4, key)

@@ -22,7 +22,9 @@ from gmjax.reduction import PruneTop
 from gmjax.scenarios.jump_system import jump_system
 
 ROOT = Path(__file__).resolve().parent.parent
-MEDIAN_REL = 10 ** (1 / montecarlo.HIST_BINS_PER_DECADE) - 1  # the histogram median's stated accuracy
+MEDIAN_REL = (
+    10 ** (1 / montecarlo.accumulate.HIST_BINS_PER_DECADE) - 1
+)  # the histogram median's stated accuracy
 
 SMALL = textwrap.dedent(
     """
@@ -285,13 +287,13 @@ def test_checkpoint_resumes_bit_identical_after_a_kill(tmp_path):
         f"""
         import os, signal
         writes = []
-        original = montecarlo._write_checkpoint
+        original = montecarlo.driver._write_checkpoint
         def write_then_die(*args, **kwargs):
             original(*args, **kwargs)
             writes.append(1)
             if len(writes) == 2:
                 os.kill(os.getpid(), signal.SIGKILL)
-        montecarlo._write_checkpoint = write_then_die
+        montecarlo.driver._write_checkpoint = write_then_die
         {call}
         """
     )
@@ -354,7 +356,9 @@ def test_broken_checkpoints_are_refused_naming_the_file_and_the_remedy(tmp_path)
     with pytest.raises(ValueError, match="is corrupt: its contents do not match the checksum.*resume=False"):
         study()
     cfg = json.loads(str(arrays["config"]))
-    montecarlo._write_npz(ckpt, dict(arrays, config=np.asarray(json.dumps(dict(cfg, gmjax_version="9.9.9")))))
+    montecarlo.files._write_npz(
+        ckpt, dict(arrays, config=np.asarray(json.dumps(dict(cfg, gmjax_version="9.9.9"))))
+    )
     with pytest.raises(ValueError, match="written by gmjax 9.9.9, this is gmjax .*resume=False"):
         study()
     old = {k: v for k, v in arrays.items() if k != "checksum"}
@@ -399,7 +403,7 @@ def test_flags_reduce_every_flag_field():
 
     f = jnp.zeros(5, bool)
     flags = Flags(f, f, f, f.at[3].set(True))
-    np.testing.assert_array_equal(montecarlo._any_flag(flags), f.at[3].set(True))
+    np.testing.assert_array_equal(montecarlo.runs._any_flag(flags), f.at[3].set(True))
     s = montecarlo.RunScores(
         *(np.ones((2, 5)),) * 4, np.stack([np.zeros(5, bool), np.asarray(flags.nonfinite)])
     )
