@@ -12,7 +12,7 @@ GMJAX = Path(__file__).resolve().parents[1] / "gmjax"
 #: Floors, bottom to top: a module may import its own floor and those below. The key is the first part
 #: of the module's name under gmjax (a package or a module); "gmjax" is the package's __init__.
 FLOORS = [
-    {"_types", "_jitcache", "_progress", "_pytree", "_plotting", "_version"},
+    {"_types", "_jitcache", "_loops", "_progress", "_pytree", "_plotting", "_version"},
     {"gaussian", "inputs"},
     {"mixture", "quadrature"},
     {"_validate", "metrics", "split"},

@@ -28,6 +28,7 @@ module                 algorithm
 ``pcm``                prune-cluster-merge (Xu et al., PCM)
 ``gmrcm``              cluster-merge with a low-weight history (Xu et al., GMRCM; stateful)
 ``relax``              soft / straight-through relaxations behind the reducers' ``mode``
+``step6``              seed 001's Step 6: pruning and three merge rules with per-slot history (stateful)
 =====================  ==============================================================================
 
 The package re-exports each module's function and config, so ``gmjax.reduction.runnalls`` is the
@@ -82,6 +83,8 @@ from gmjax.reduction.relax import gated_prune as gated_prune
 from gmjax.reduction.runnalls import Runnalls as Runnalls
 from gmjax.reduction.runnalls import runnalls as runnalls
 from gmjax.reduction.runnalls import runnalls_cost as runnalls_cost
+from gmjax.reduction.step6 import Step6Merge as Step6Merge
+from gmjax.reduction.step6 import Step6State as Step6State
 from gmjax.reduction.salmond import Salmond as Salmond
 from gmjax.reduction.salmond import salmond as salmond
 from gmjax.reduction.salmond import salmond_cost as salmond_cost
@@ -131,6 +134,8 @@ __all__ = [
     "onehot_membership",
     # costs
     "runnalls_cost",
+    "Step6Merge",
+    "Step6State",
     "salmond_cost",
     "weighted_mahalanobis_sq",
     # configs

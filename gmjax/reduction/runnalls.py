@@ -40,17 +40,27 @@ def runnalls_cost(
     Pj: Array,
     ldi: Array | None = None,
     ldj: Array | None = None,
+    *,
+    normalized: bool = False,
 ) -> Array:
     """Runnalls' upper bound on the KL discrimination caused by merging ``i`` and ``j``.
 
     ``B(i, j) = 1/2 [(w_i + w_j) log det P_ij - w_i log det P_i - w_j log det P_j]`` with ``P_ij``
     the moment-merged covariance (Runnalls 2007, IEEE TAES 43(3), Theorem 3 / eq 21). Weights as
     stored; broadcasts over leading axes. ``ldi``/``ldj`` are optional precomputed
-    ``log det P_i`` / ``log det P_j``.
+    ``log det P_i`` / ``log det P_j``. ``normalized`` (static): ``B(i, j) / (w_i + w_j)
+    = 1/2 [log det P_ij - l_i log det P_i - l_j log det P_j]`` with ``l_i = w_i / (w_i + w_j)``
+    (``l_i = 1/2`` for a pair of zero weight; seed 001 Step 6 rule 2).
     """
     W, _, Pij = gaussian.moment_merge_pair(wi, mi, Pi, wj, mj, Pj)
     ldi = gaussian.spd_logdet(Pi) if ldi is None else ldi
     ldj = gaussian.spd_logdet(Pj) if ldj is None else ldj
+    if normalized:
+        ok = W > 0
+        Ws = jnp.where(ok, W, 1.0)
+        li = jnp.where(ok, wi / Ws, 0.5)
+        lj = jnp.where(ok, wj / Ws, 0.5)
+        return 0.5 * (gaussian.spd_logdet(Pij) - li * ldi - lj * ldj)
     return 0.5 * (W * gaussian.spd_logdet(Pij) - wi * ldi - wj * ldj)
 
 
