@@ -5,6 +5,8 @@ module              contents
 ==================  ===========================================================================
 ``phd``             the GM-PHD filter (Vo & Ma 2006) as a :class:`gmjax.filters.Filter`, its
                     :func:`run` over padded measurement sets, state extraction (hard and relaxed)
+``cphd``            the GM-CPHD filter (Vo, Vo & Cantoni 2007) under the same contract: the intensity
+                    and the cardinality distribution, MAP state extraction (run it with :func:`run`)
 ``relaxed``         :class:`RelaxedVoMa`, Vo–Ma pruning and merging with soft gates (differentiable)
 ``scenarios``       multi-target scenarios and their simulation (births, deaths, ``P_D``, clutter)
 ``metrics``         OSPA, GOSPA (with its decomposition) and a relaxed GOSPA, via an exact
@@ -13,11 +15,15 @@ module              contents
 ==================  ===========================================================================
 """
 
+from gmjax.multitarget import cphd as cphd
 from gmjax.multitarget import metrics as metrics
 from gmjax.multitarget import phd as phd
 from gmjax.multitarget import relaxed as relaxed
 from gmjax.multitarget import scenarios as scenarios
 from gmjax.multitarget import study as study
+from gmjax.multitarget.cphd import CPHDParams as CPHDParams
+from gmjax.multitarget.cphd import CPHDState as CPHDState
+from gmjax.multitarget.cphd import gm_cphd as gm_cphd
 from gmjax.multitarget.metrics import GOSPA as GOSPA
 from gmjax.multitarget.metrics import gospa as gospa
 from gmjax.multitarget.metrics import linear_sum_assignment as linear_sum_assignment
@@ -44,6 +50,7 @@ from gmjax.multitarget.study import study_loss as study_loss
 __all__ = [
     "metrics",
     "phd",
+    "cphd",
     "relaxed",
     "scenarios",
     "GOSPA",
@@ -56,6 +63,9 @@ __all__ = [
     "PHDState",
     "extract",
     "gm_phd",
+    "CPHDParams",
+    "CPHDState",
+    "gm_cphd",
     "pad_scans",
     "PaddedScans",
     "run",
