@@ -24,11 +24,13 @@ def test_notebooks_exist_without_outputs():
 
 
 # Each notebook takes 10-80 s (mostly compiling its filters; 5 minutes together under CI's two
-# workers). The Monte Carlo and PCRB notebooks run in the default suite; the mixtures / reduction,
+# workers). The PCRB notebook runs in the default suite; the mixtures / reduction, Monte Carlo,
 # tuning, bank and GM-PHD ones with -m slow (their APIs, gradients included, are checked by
-# test_mixture, test_reduction, test_tune, test_bank, test_phd and test_fitting).
+# test_mixture, test_reduction, test_montecarlo and its README block, test_tune, test_bank, test_phd
+# and test_fitting).
 _SLOW_NOTEBOOKS = {
     "01_mixtures_and_reduction",
+    "02_monte_carlo_study",  # 55-65 s; gmjax.monte_carlo: test_montecarlo, the README block by default
     "04_threshold_tuning",
     "05_active_cluster_reduction",
     "06_gm_phd",
