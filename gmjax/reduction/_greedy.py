@@ -44,6 +44,7 @@ class GreedyState(NamedTuple):
     merges: jax.Array
     total: jax.Array
     n_live: jax.Array
+    logdet: jax.Array | None = None  # (K,) log det P per slot, kept current when a row cost reads it
 
 
 def greedy_steps(gm, num_out, threshold, select, row_cost):
@@ -75,9 +76,10 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
         P = jnp.where(at_i[:, None, None], PP, jnp.where(at_j[:, None, None], eye, s.P))
         mask = s.mask & ~at_j
         labels = jnp.where(do & (s.labels == j), i, s.labels)
+        logdet = None if s.logdet is None else jnp.where(at_i, gaussian.spd_logdet(PP), s.logdet)
         C = s.C
         if row_cost is not None:
-            s2 = s._replace(w=w, m=m, P=P, mask=mask)
+            s2 = s._replace(w=w, m=m, P=P, mask=mask, logdet=logdet)
             row = jnp.where(mask & (ar != i), row_cost(s2, i), jnp.inf)
             row_up = jnp.where(ar > i, row, jnp.inf)  # C[i, k], k > i
             col_lo = jnp.where(ar < i, row, jnp.inf)  # C[k, i], k < i
@@ -101,6 +103,7 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
             merges,
             s.total + jnp.where(do, c, 0.0),
             s.n_live - do.astype(jnp.int32),
+            logdet,
         )
 
     return body, n_steps
@@ -148,7 +151,9 @@ def upper_argmin(s: GreedyState):
     return i, j, cost_matrix[i, j], lb
 
 
-def init_state(gm, C):
+def init_state(gm, C, logdet=None):
+    """The loop's start; ``logdet`` ``(K,)``: each slot's ``log det P``, carried and updated for the
+    merged slot only (a row cost then reads ``state.logdet`` instead of recomputing every slot's)."""
     K = gm.capacity
     n_steps = K
     w = jnp.where(gm.mask, gm.weights, 0.0)
@@ -163,6 +168,7 @@ def init_state(gm, C):
         jnp.full((max(n_steps, 1), 2), -1, jnp.int32),
         jnp.zeros((), w.dtype),
         jnp.sum(gm.mask.astype(jnp.int32)),
+        logdet,
     )
 
 

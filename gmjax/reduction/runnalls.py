@@ -84,12 +84,11 @@ def _runnalls_core(gm, num_out, threshold, capacity):
         ld[None, :],
     )
 
-    def row_cost(s, i):
-        ld = gaussian.spd_logdet(s.P)
-        return runnalls_cost(s.w[i], s.m[i], s.P[i], s.w, s.m, s.P, ld[i], ld)
+    def row_cost(s, i):  # log-determinants carried: only the merged slot's is new
+        return runnalls_cost(s.w[i], s.m[i], s.P[i], s.w, s.m, s.P, s.logdet[i], s.logdet)
 
     body, n_steps = greedy_steps(gm, num_out, threshold, upper_argmin, row_cost)
-    s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, clean_upper(C, gm.mask)))
+    s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, clean_upper(C, gm.mask), ld))
     return finish(gm, s, n_steps, capacity)
 
 
