@@ -85,7 +85,7 @@ nitpick_ignore_regex = [
     # third-party and standard-library types in signatures (jax.Array, numpy.ndarray, typing.Callable,
     # optax.GradientTransformation, ...): no intersphinx inventory offline
     (r"py:.*", r"(jax|jaxlib|numpy|np|jnp|optax|typing|collections|types|enum|dataclasses|pathlib|"
-               r"concurrent|matplotlib|builtins)(\..*)?"),
+               r"concurrent|matplotlib|builtins|os)(\..*)?"),
     # builtins written as types in docstrings and signatures
     (r"py:.*", r"(int|float|bool|str|bytes|tuple|list|dict|set|frozenset|object|callable|None|Any|"
                r"Callable|Sequence|Mapping|Iterable|Iterator|Optional|Union|Literal|NamedTuple|type|"

@@ -46,6 +46,7 @@ __all__ = [
     "affine",
     "concat",
     "top_k",
+    "heaviest_slots",
     "from_gaussian",
 ]
 
@@ -512,6 +513,30 @@ def concat(a: GaussianMixture, b: GaussianMixture) -> GaussianMixture:
     return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 
+def heaviest_slots(weights: Array, keep: Array, k: int) -> tuple[Array, Array]:
+    """The slots of the ``k`` heaviest kept components, heaviest first (ties: the lower slot first).
+
+    The one keep-the-heaviest primitive of the library (a ``lax.top_k`` over the weights with the
+    slots not kept at ``-inf``): the reducers' output fitting, top-``K`` pruning, the gated pruning
+    and the GM-PHD's truncation all select through it.
+
+    Args:
+        weights: ``(K,)`` weights. keep: ``(K,)`` bool, the slots that may be selected.
+        k: static number of slots to select; may exceed ``K`` (the extra entries are slot 0, invalid).
+
+    Returns:
+        ``(idx (k,), valid (k,))``: the selected slots and whether each holds a kept component
+        (fewer than ``k`` kept: the rest of ``idx`` are slots that were not kept, marked invalid).
+    """
+    K = weights.shape[-1]
+    _, idx = jax.lax.top_k(jnp.where(keep, weights, -jnp.inf), min(k, K))
+    valid = keep[idx]
+    if k > K:
+        idx = jnp.concatenate([idx, jnp.zeros(k - K, idx.dtype)])
+        valid = jnp.concatenate([valid, jnp.zeros(k - K, bool)])
+    return idx, valid
+
+
 def top_k(gm: GaussianMixture, k: int, *, renormalize: bool = False) -> GaussianMixture:
     """The ``k`` heaviest live components in a mixture of capacity ``k`` (static), heaviest first.
 
@@ -520,9 +545,8 @@ def top_k(gm: GaussianMixture, k: int, *, renormalize: bool = False) -> Gaussian
     """
     if k < 1:
         raise ValueError(f"k: must be >= 1, got {k}")
-    key = jnp.where(gm.mask, gm.weights, -jnp.inf)
     if k <= gm.capacity:
-        _, idx = jax.lax.top_k(key, k)
+        idx, _ = heaviest_slots(gm.weights, gm.mask, k)
         out = jax.tree_util.tree_map(lambda a: a[idx], gm)
     else:
         out = top_k(pad(gm, k), k)

@@ -272,9 +272,7 @@ def test_gradient_of_mean_gospa_wrt_thresholds_matches_finite_differences(linear
 
     def loss(log_thresholds):
         T, U = jnp.exp(log_thresholds)
-        params = base.params._replace(
-            reducer=base.params.reducer.__class__(T, U, 5e-4, 1.0, max_components=10)
-        )
+        params = base.params._replace(reducer=mt.RelaxedVoMa(T, U, 5e-4, 1.0, max_components=10))
 
         def one(zs, truth, alive):
             states, _ = mt.run(base, zs, params=params)

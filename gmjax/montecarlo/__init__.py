@@ -14,7 +14,7 @@ filter with its scoring, kept per filter, scenario and params object. ``compile_
 only in the study that compiled it. Each device of a chunk sums its own **block** of ``chunk_size /
 devices`` runs: per step, the sum and sum of squares of every score (squared error, position squared
 error, NEES, component count, ISE, reducer cost, flags) about the block's first run, the ``(T, T)``
-cross-products of the squared errors (for the ARMSE standard error, see :func:`_armse_and_stderr`),
+cross-products of the squared errors (for the ARMSE standard error, see ``accumulate._armse_and_stderr``),
 log-spaced histograms of the NEES and of the position error (for the median NEES and the CEP) and the
 number of runs with a flag. The host centres each block in float64 and combines the blocks (Chan et
 al.'s pairwise update) in one fixed binary tree over the study's block indices (:class:`BlockSums`),
@@ -45,7 +45,7 @@ are grouped otherwise (ARMSE: 3e-8 relative in float32, 1e-16 in float64). The t
 sizes to 1e-12 relative in float64.
 
 **Resume.** ``checkpoint=path`` writes the block sums after every chunk (``.npz``, no pickle, with a
-sha256 checksum of its arrays; a temporary file and :func:`os.replace`, temporary files of a killed
+sha256 checksum of its arrays; a temporary file and ``os.replace``, temporary files of a killed
 write removed on start and finish) with a hash of the configuration (filter params, scenario settings,
 key, run range, block size, dtype, gmjax and JAX versions). Calling again with the same arguments
 resumes after the last finished chunk and returns the bit-identical result, on any number of devices

@@ -7,7 +7,7 @@ module              contents
                     :func:`run` over padded measurement sets, state extraction (hard and relaxed)
 ``cphd``            the GM-CPHD filter (Vo, Vo & Cantoni 2007) under the same contract: the intensity
                     and the cardinality distribution, MAP state extraction (run it with :func:`run`)
-``relaxed``         :class:`RelaxedVoMa`, Vo–Ma pruning and merging with soft gates (differentiable)
+``relaxed``         :func:`RelaxedVoMa` (``VoMa(mode="soft")``): Vo–Ma with soft gates (differentiable)
 ``scenarios``       multi-target scenarios and their simulation (births, deaths, ``P_D``, clutter)
 ``metrics``         OSPA, GOSPA (with its decomposition) and a relaxed GOSPA, via an exact
                     jit-able assignment (Hungarian algorithm)

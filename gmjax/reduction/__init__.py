@@ -83,11 +83,11 @@ from gmjax.reduction.relax import gated_prune as gated_prune
 from gmjax.reduction.runnalls import Runnalls as Runnalls
 from gmjax.reduction.runnalls import runnalls as runnalls
 from gmjax.reduction.runnalls import runnalls_cost as runnalls_cost
-from gmjax.reduction.step6 import Step6Merge as Step6Merge
-from gmjax.reduction.step6 import Step6State as Step6State
 from gmjax.reduction.salmond import Salmond as Salmond
 from gmjax.reduction.salmond import salmond as salmond
 from gmjax.reduction.salmond import salmond_cost as salmond_cost
+from gmjax.reduction.step6 import Step6Merge as Step6Merge
+from gmjax.reduction.step6 import Step6State as Step6State
 from gmjax.reduction.vo_ma import VoMa as VoMa
 from gmjax.reduction.vo_ma import vo_ma as vo_ma
 from gmjax.reduction.west import West as West

@@ -50,7 +50,7 @@ def finalize(
         labels_out = jnp.where(labels >= 0, pos[jnp.maximum(labels, 0)], -1)
         return mixture.sanitize(out), labels_out, jnp.asarray(False), jnp.zeros((), work.weights.dtype)
     order_keep = jnp.argsort(~work.mask, stable=True)[:capacity]
-    _, order_top = jax.lax.top_k(jnp.where(work.mask, work.weights, -jnp.inf), capacity)
+    order_top, _ = mixture.heaviest_slots(work.weights, work.mask, capacity)
     idx = jnp.where(overflow, order_top, order_keep)
     out = jax.tree_util.tree_map(lambda a: a[idx], work)
     valid = work.mask[idx]

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
-from gmjax.mixture import GaussianMixture, pad, sanitize
+from gmjax.mixture import GaussianMixture, heaviest_slots, pad, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, make_info
 from gmjax.reduction.relax import (
@@ -150,8 +150,7 @@ def _prune_top(gm, num_out, cap):
     no keep mask, no second selection. Padded slots are never picked ahead of a live one."""
     w = jnp.where(gm.mask, gm.weights, 0.0)
     total = jnp.sum(w)
-    _, idx = jax.lax.top_k(jnp.where(gm.mask, gm.weights, -jnp.inf), num_out)
-    kept = gm.mask[idx]
+    idx, kept = heaviest_slots(gm.weights, gm.mask, num_out)
     out = jax.tree_util.tree_map(lambda a: a[idx], gm)._replace(mask=kept)
     kept_mass = jnp.sum(jnp.where(kept, out.weights, 0.0))
     scale = jnp.where(kept_mass > 0, total / jnp.where(kept_mass > 0, kept_mass, 1.0), 1.0)

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 
 from gmjax import _validate
 from gmjax._types import Array, ArrayLike, DTypeLike
-from gmjax.mixture import GaussianMixture, sanitize
+from gmjax.mixture import GaussianMixture, heaviest_slots, sanitize
 from gmjax.reduction.base import ReductionInfo, make_info
 from gmjax.reduction.clustering import centre_distances, gauss_cluster, similarity_thresholds
 from gmjax.reduction.eise import onehot_membership, relaxed_membership
@@ -178,14 +178,7 @@ def select_kept(gm: GaussianMixture, keep: Array, w: Array, capacity: int) -> tu
         slot of every input slot (``-1`` where it was dropped or is padding).
     """
     K = gm.capacity
-    score = jnp.where(keep, w, -jnp.inf)
-    if capacity <= K:
-        _, idx = jax.lax.top_k(score, capacity)
-        valid = keep[idx]
-    else:
-        _, idx_full = jax.lax.top_k(score, K)
-        idx = jnp.concatenate([idx_full, jnp.zeros(capacity - K, idx_full.dtype)])
-        valid = jnp.concatenate([keep[idx_full], jnp.zeros(capacity - K, bool)])
+    idx, valid = heaviest_slots(w, keep, capacity)
     pos = jnp.full(K, -1, jnp.int32).at[idx].max(jnp.where(valid, jnp.arange(capacity, dtype=jnp.int32), -1))
     return idx, valid, jnp.where(gm.mask, pos, -1)
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
 
 from gmjax import _validate, gaussian
@@ -129,7 +128,7 @@ def _fit(c: _MergeCarry, capacity: int):
     n_live = jnp.sum(c.mask.astype(jnp.int32))
     overflow = n_live > capacity
     order_keep = jnp.argsort(~c.mask, stable=True)[:n_out]
-    _, order_top = jax.lax.top_k(jnp.where(c.mask, c.w, -jnp.inf), n_out)
+    order_top, _ = gmm.heaviest_slots(c.w, c.mask, n_out)
     idx = jnp.where(overflow, order_top, order_keep)
     live = c.mask[idx]
     gm = gmm.sanitize(GaussianMixture(jnp.where(live, c.w[idx], 0.0), c.m[idx], c.P[idx], live))
@@ -182,7 +181,7 @@ class Step6Merge:
 
     Attributes:
         prune_threshold, low_weight, merge_threshold, merge_don: the thresholds (leaves; see
-            :class:`AGSFConfig`).
+            :class:`~gmjax.filters.agsf.AGSFConfig`).
         capacity: static output slots (default ``None``: the input's).
 
     ``info.cost`` is the summed (unnormalised) Runnalls bound of the merges, ``info.pruned_mass``

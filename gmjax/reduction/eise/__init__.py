@@ -39,14 +39,14 @@ under ``vmap`` the distinct pairs of all runs side by side): in 4-D, where the p
 algebra dominates, a relaxed evaluation costs a little over a quarter of one over all pairs.
 
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
-:func:`_newton`; every candidate ``λ`` is evaluated with its derivatives, which the next step
+``newton._newton``; every candidate ``λ`` is evaluated with its derivatives, which the next step
 starts from, so a step whose full length is accepted costs one evaluation); it fails when a
 derivative is not finite or no step decreases the relaxation. The hard EISE at Newton's ``λ`` is
 then computed, and the grid's best is kept whenever Newton failed or did not do at least as well
 (``used_fallback`` in the result).
 The clustering at Newton's ``λ`` is a grid point's wherever the two judgment matrices are equal
 (the clustering depends on ``λ`` only through it); only the other runs run the overlap sweep
-(:func:`_cluster_unless_known`; under ``vmap`` gathered into blocks).
+(``search._cluster_unless_known``; under ``vmap`` gathered into blocks).
 Newton's loops exit early (under ``vmap`` each pass steps only the runs still stepping, gathered
 into chunks, until every run of the batch is done, and only the few runs whose full step was
 rejected halve it, gathered into blocks); a custom JVP differentiates the
