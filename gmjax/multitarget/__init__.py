@@ -40,6 +40,8 @@ from gmjax.multitarget.phd import run as run
 from gmjax.multitarget.phd import soft_estimates as soft_estimates
 from gmjax.multitarget.relaxed import RelaxedVoMa as RelaxedVoMa
 from gmjax.multitarget.scenarios import MultiTargetScenario as MultiTargetScenario
+from gmjax.multitarget.scenarios import bucket_capacity as bucket_capacity
+from gmjax.multitarget.scenarios import clutter_capacity as clutter_capacity
 from gmjax.multitarget.scenarios import range_bearing as range_bearing
 from gmjax.multitarget.scenarios import simulate as simulate
 from gmjax.multitarget.scenarios import vo_ma_linear as vo_ma_linear
@@ -72,6 +74,8 @@ __all__ = [
     "soft_estimates",
     "RelaxedVoMa",
     "MultiTargetScenario",
+    "bucket_capacity",
+    "clutter_capacity",
     "range_bearing",
     "simulate",
     "vo_ma_linear",

@@ -12,6 +12,13 @@ detected with probability ``P_D`` (``z = h(x) + w``); ``Poisson(lambda_c)`` clut
 over the region. Each scan is a padded set ``(M, m)`` with NaN rows for absent measurements
 (the convention of :mod:`gmjax.multitarget.phd`), detections first; when a scan holds more than ``M``
 measurements the last clutter points are dropped **and** ``overflow`` is set for that step.
+
+**Capacities in buckets.** ``M`` is a static shape: a filter compiled for one ``M`` is compiled again
+for another. :func:`bucket_capacity` rounds a size up to a power of two and :func:`clutter_capacity`
+picks the bucket that holds a scan of ``Poisson(lambda_c)`` clutter plus every target except with
+probability ``overflow_prob``, so a study whose clutter rate varies from run to run (``simulate``'s
+``clutter_rate``, traced) compiles one program per bucket, a handful, not one per rate; a scan that
+still overflows is flagged, as always.
 """
 
 from __future__ import annotations
@@ -30,6 +37,8 @@ from gmjax.mixture import GaussianMixture, from_gaussian
 from gmjax.models.base import StateSpaceModel
 
 __all__ = [
+    "bucket_capacity",
+    "clutter_capacity",
     "MultiTargetScenario",
     "MultiTargetSample",
     "simulate",
@@ -37,6 +46,45 @@ __all__ = [
     "range_bearing",
     "cv_model",
 ]
+
+
+def bucket_capacity(n: int, *, minimum: int = 8) -> int:
+    """The measurement capacity for scans of up to ``n`` rows: the smallest power of two that is at
+    least ``max(n, minimum)`` (so sizes 9..16 share 16, 17..32 share 32, ...).
+
+    Raises:
+        ValueError: ``n`` negative or ``minimum`` below 1.
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"n: expected a non-negative int, got {n!r}")
+    if isinstance(minimum, bool) or not isinstance(minimum, (int, np.integer)) or minimum < 1:
+        raise ValueError(f"minimum: expected a positive int, got {minimum!r}")
+    return 1 << (max(int(n), int(minimum)) - 1).bit_length()
+
+
+def clutter_capacity(
+    clutter_rate: float, n_targets: int, *, overflow_prob: float = 1e-6, minimum: int = 8
+) -> int:
+    """The :func:`bucket_capacity` of a scan with every one of ``n_targets`` detected and
+    ``Poisson(clutter_rate)`` clutter points, exceeded with probability at most ``overflow_prob``
+    (the Poisson quantile ``1 - overflow_prob``; a scan that still overflows is flagged by
+    :func:`simulate`).
+
+    Raises:
+        ValueError: a negative or non-finite rate, a negative target count, ``overflow_prob`` outside
+            ``(0, 1)``.
+    """
+    from scipy.stats import poisson
+
+    rate = float(clutter_rate)
+    if not math.isfinite(rate) or rate < 0:
+        raise ValueError(f"clutter_rate: expected a finite rate >= 0, got {clutter_rate!r}")
+    if isinstance(n_targets, bool) or not isinstance(n_targets, (int, np.integer)) or n_targets < 0:
+        raise ValueError(f"n_targets: expected a non-negative int, got {n_targets!r}")
+    if not 0.0 < float(overflow_prob) < 1.0:
+        raise ValueError(f"overflow_prob: expected a probability in (0, 1), got {overflow_prob!r}")
+    clutter = 0 if rate == 0 else int(poisson.ppf(1.0 - float(overflow_prob), rate))
+    return bucket_capacity(int(n_targets) + clutter, minimum=minimum)
 
 
 class MultiTargetScenario(NamedTuple):
@@ -115,8 +163,15 @@ class MultiTargetSample(NamedTuple):
     overflow: Array
 
 
-def simulate(scenario: MultiTargetScenario, key: PRNGKey) -> MultiTargetSample:
-    """Simulate one run of ``scenario`` (traceable: ``jax.vmap(simulate, (None, 0))`` over keys)."""
+def simulate(
+    scenario: MultiTargetScenario, key: PRNGKey, *, clutter_rate: ArrayLike | None = None
+) -> MultiTargetSample:
+    """Simulate one run of ``scenario`` (traceable: ``jax.vmap(simulate, (None, 0))`` over keys).
+
+    ``clutter_rate`` (traced; default ``scenario.clutter_rate``) replaces the scenario's rate, so runs
+    with their own rates ``vmap`` in one program: ``jax.vmap(lambda k, c: simulate(sc, k,
+    clutter_rate=c))(keys, rates)`` (pick ``scenario.max_measurements`` with :func:`clutter_capacity`).
+    """
     model = scenario.model
     x_init = jnp.asarray(scenario.initial_states)
     dtype = x_init.dtype
@@ -135,7 +190,7 @@ def simulate(scenario: MultiTargetScenario, key: PRNGKey) -> MultiTargetSample:
     f = jax.vmap(model.f, in_axes=(0, None))
     h = jax.vmap(model.h, in_axes=(0, None))
     p_d = jnp.asarray(scenario.detection_prob, dtype)
-    rate = jnp.asarray(scenario.clutter_rate, dtype)
+    rate = jnp.asarray(scenario.clutter_rate if clutter_rate is None else clutter_rate, dtype)
 
     def step(x, inp):
         t, k = inp
