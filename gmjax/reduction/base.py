@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Protocol
+import dataclasses
+from typing import Any, Callable, NamedTuple, Protocol
 
 import jax.numpy as jnp
 
 from gmjax._types import Array, PRNGKey
 from gmjax.mixture import GaussianMixture
 
-__all__ = ["ReductionInfo", "Reducer", "EmptyState", "Stateless", "make_info"]
+__all__ = ["ReductionInfo", "Reducer", "EmptyState", "Stateless", "calls", "make_info"]
 
 
 class ReductionInfo(NamedTuple):
@@ -97,8 +98,31 @@ class Reducer(Protocol):
     ) -> tuple[GaussianMixture, ReductionInfo]: ...
 
 
+def calls(fn: Callable[..., tuple[GaussianMixture, ReductionInfo]]) -> Callable:
+    """The ``__call__`` of a stateless reducer config that calls the reducer function ``fn`` with every
+    field of the config by name: ``fn(gm, **fields, key=key)`` (the function and its config share
+    their argument names; as optax's ``stateless`` makes a transformation of a function)::
+
+        @pytree_dataclass
+        class West(Stateless):
+            num_out: int = static_field(3)
+            ...
+            __call__ = calls(west)
+    """
+
+    def __call__(
+        self, gm: GaussianMixture, *, key: PRNGKey | None = None
+    ) -> tuple[GaussianMixture, ReductionInfo]:
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return fn(gm, **fields, key=key)
+
+    __call__.__doc__ = f"``{fn.__name__}(gm, **fields, key=key)``: ``(reduced, info)``."
+    return __call__
+
+
 class Stateless:
-    """Mixin giving a stateless reducer config (one that defines ``__call__``) the protocol."""
+    """Mixin giving a stateless reducer config (one that defines ``__call__``, e.g. by
+    :func:`calls`) the protocol."""
 
     def init(self, capacity: int) -> EmptyState:
         """The (empty) state; ``capacity`` is unused."""

@@ -10,11 +10,10 @@ import numpy as np
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.merge import merge_labels
 
 __all__ = ["brute_force", "BruteForce", "set_partitions", "MAX_PARTITIONS"]
@@ -125,7 +124,4 @@ class BruteForce(Stateless):
     num_out: int = static_field(3)
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return brute_force(gm, self.num_out, capacity=self.capacity, key=key)
+    __call__ = calls(brute_force)

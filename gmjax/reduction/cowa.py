@@ -16,7 +16,7 @@ from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.west import west_distance
 
 __all__ = ["cowa", "optimal_weights", "COWA"]
@@ -163,7 +163,4 @@ class COWA(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return cowa(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)
+    __call__ = calls(cowa)

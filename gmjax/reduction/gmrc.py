@@ -10,10 +10,9 @@ import jax.numpy as jnp
 
 from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.runnalls import _runnalls
 
@@ -117,7 +116,4 @@ class GMRC(Stateless):
     max_iter: int = static_field(50)
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return gmrc(gm, self.num_out, max_iter=self.max_iter, capacity=self.capacity, key=key)
+    __call__ = calls(gmrc)

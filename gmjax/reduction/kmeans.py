@@ -13,7 +13,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.merge import merge_labels
 
 __all__ = ["kmeans", "KMeans", "weighted_mahalanobis_sq", "farthest_point_init"]
@@ -179,7 +179,4 @@ class KMeans(Stateless):
     tol: float = static_field(0.0)
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return kmeans(gm, self.num_out, max_iter=self.max_iter, tol=self.tol, capacity=self.capacity, key=key)
+    __call__ = calls(kmeans)

@@ -44,7 +44,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.eise import (
     ConfidenceSearch,
     EISECriterion,
@@ -431,26 +431,4 @@ class PCM(Stateless):
     gate_temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: jax.Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return pcm(
-            gm,
-            rho=self.rho,
-            max_components=self.max_components,
-            alpha=self.alpha,
-            lam=self.lam,
-            lambda_range=self.lambda_range,
-            grid_size=self.grid_size,
-            newton_steps=self.newton_steps,
-            temperature=self.temperature,
-            tol=self.tol,
-            range_scale=self.range_scale,
-            dims=self.dims,
-            merge=self.merge,
-            prune=self.prune,
-            capacity=self.capacity,
-            gate_temperature=self.gate_temperature,
-            mode=self.mode,
-            key=key,
-        )
+    __call__ = calls(pcm)

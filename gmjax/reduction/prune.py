@@ -24,10 +24,9 @@ import jax.numpy as jnp
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, heaviest_slots, pad, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.relax import (
     censored_gates,
     gated_prune,
@@ -267,12 +266,7 @@ class PruneThreshold(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return prune_threshold(
-            gm, self.threshold, temperature=self.temperature, mode=self.mode, capacity=self.capacity, key=key
-        )
+    __call__ = calls(prune_threshold)
 
 
 @pytree_dataclass
@@ -288,10 +282,7 @@ class PruneTop(Stateless):
     num_out: int = static_field(10)
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return prune_top(gm, self.num_out, capacity=self.capacity, key=key)
+    __call__ = calls(prune_top)
 
 
 @pytree_dataclass
@@ -309,15 +300,4 @@ class PruneCensored(Stateless):
     temperature: Any = 0.0
     mode: str = static_field("hard")
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return prune_censored(
-            gm,
-            self.rho,
-            self.max_components,
-            temperature=self.temperature,
-            mode=self.mode,
-            capacity=self.capacity,
-            key=key,
-        )
+    __call__ = calls(prune_censored)

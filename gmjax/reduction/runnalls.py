@@ -26,7 +26,7 @@ from gmjax.reduction._greedy import (
     sequential,
     upper_argmin,
 )
-from gmjax.reduction.base import ReductionInfo, Stateless
+from gmjax.reduction.base import ReductionInfo, Stateless, calls
 
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]
 
@@ -131,7 +131,4 @@ class Runnalls(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return runnalls(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)
+    __call__ = calls(runnalls)

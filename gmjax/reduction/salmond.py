@@ -14,7 +14,7 @@ from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, moments
 from gmjax.reduction import _util
 from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
-from gmjax.reduction.base import ReductionInfo, Stateless
+from gmjax.reduction.base import ReductionInfo, Stateless, calls
 
 __all__ = ["salmond", "salmond_cost", "Salmond"]
 
@@ -82,7 +82,4 @@ class Salmond(Stateless):
     threshold: Any = float("inf")
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return salmond(gm, self.num_out, self.threshold, capacity=self.capacity, key=key)
+    __call__ = calls(salmond)

@@ -15,7 +15,7 @@ from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._greedy import finish, greedy_steps, init_state
-from gmjax.reduction.base import ReductionInfo, Stateless
+from gmjax.reduction.base import ReductionInfo, Stateless, calls
 
 __all__ = ["west", "west_distance", "West"]
 
@@ -90,15 +90,4 @@ class West(Stateless):
     enhanced: bool = static_field(False)
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return west(
-            gm,
-            self.num_out,
-            self.threshold,
-            metric=self.metric,
-            enhanced=self.enhanced,
-            capacity=self.capacity,
-            key=key,
-        )
+    __call__ = calls(west)

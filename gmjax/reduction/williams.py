@@ -11,12 +11,11 @@ import jax.numpy as jnp
 
 from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.reduction.base import ReductionInfo, Stateless, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 
 __all__ = ["williams", "Williams"]
 
@@ -178,14 +177,4 @@ class Williams(Stateless):
     allow_prune: bool = static_field(True)
     capacity: int | None = static_field(None)
 
-    def __call__(
-        self, gm: GaussianMixture, *, key: Array | None = None
-    ) -> tuple[GaussianMixture, ReductionInfo]:
-        return williams(
-            gm,
-            self.num_out,
-            self.threshold,
-            allow_prune=self.allow_prune,
-            capacity=self.capacity,
-            key=key,
-        )
+    __call__ = calls(williams)
