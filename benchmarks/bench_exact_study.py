@@ -60,7 +60,7 @@ KILLED = (
 import os, random, signal
 rng = random.Random(cfg["seed"])
 writes, kill_at = [], rng.randint(1, cfg["n_chunks"] - 1)
-original, savez = montecarlo.driver._write_checkpoint, montecarlo.files.np.savez
+original, savez = montecarlo.driver._write_checkpoint, montecarlo._files.np.savez
 def write_then_die(*args, **kwargs):
     original(*args, **kwargs)
     writes.append(1)
@@ -74,7 +74,7 @@ def die_while_writing(f, **arrays):  # half a file, then the kill: the temporary
     savez(f, **arrays)
 montecarlo.driver._write_checkpoint = write_then_die
 if cfg["when"] == "during":
-    montecarlo.files.np.savez = die_while_writing
+    montecarlo._files.np.savez = die_while_writing
 r = study(range(cfg["runs"]), cfg["block"], checkpoint=cfg["checkpoint"])
 r.save(cfg["out"])
 print(json.dumps({"resumed_runs": r.resumed_runs}))

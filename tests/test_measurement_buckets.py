@@ -96,3 +96,13 @@ def test_a_larger_bucket_changes_nothing():
     _, b = mt.run(phd, wider)
     np.testing.assert_allclose(a.extra["cardinality"], b.extra["cardinality"], rtol=1e-12)
     np.testing.assert_allclose(a.mean, b.mean, rtol=1e-10, atol=1e-9)
+
+
+def test_pad_scans_without_a_capacity_takes_the_bucket_of_the_largest_scan():
+    scans = [np.ones((3, 2)), np.zeros((0, 2)), np.full((11, 2), 2.0)]
+    padded = mt.pad_scans(scans)
+    assert padded.zs.shape == (3, 16, 2)
+    assert not bool(np.any(padded.overflow))
+    np.testing.assert_array_equal(padded.n_measurements, [3, 0, 11])
+    np.testing.assert_array_equal(np.asarray(mt.phd.measurement_mask(padded.zs)).sum(-1), [3, 0, 11])
+    assert mt.pad_scans([np.ones((17, 2))]).zs.shape == (1, 32, 2)

@@ -356,7 +356,7 @@ def test_broken_checkpoints_are_refused_naming_the_file_and_the_remedy(tmp_path)
     with pytest.raises(ValueError, match="is corrupt: its contents do not match the checksum.*resume=False"):
         study()
     cfg = json.loads(str(arrays["config"]))
-    montecarlo.files._write_npz(
+    montecarlo._files._write_npz(
         ckpt, dict(arrays, config=np.asarray(json.dumps(dict(cfg, gmjax_version="9.9.9"))))
     )
     with pytest.raises(ValueError, match="written by gmjax 9.9.9, this is gmjax .*resume=False"):

@@ -78,7 +78,7 @@ goes through simulation, filtering and scoring. :mod:`gmjax.tune` is an optax lo
 The modules: :mod:`~gmjax.montecarlo.runs` (one run and its scores), :mod:`~gmjax.montecarlo.losses`
 (differentiable study losses), :mod:`~gmjax.montecarlo.accumulate` (streaming moments and the block
 tree), :mod:`~gmjax.montecarlo.result` (the result, summaries, :func:`merge`),
-:mod:`~gmjax.montecarlo.files` (checksummed ``.npz`` files), :mod:`~gmjax.montecarlo.checkpoint`
+``_files`` (checksummed ``.npz`` files), ``_checkpoint``
 (resumable studies) and :mod:`~gmjax.montecarlo.driver` (:func:`monte_carlo`).
 """
 

@@ -14,8 +14,8 @@ import numpy as np
 from gmjax._types import PRNGKey
 from gmjax.filters.base import Filter
 from gmjax.models.base import Scenario
+from gmjax.montecarlo._files import _digest, _pack, _read_npz, _unpack, _write_npz
 from gmjax.montecarlo.accumulate import BlockSums, _fold
-from gmjax.montecarlo.files import _digest, _pack, _read_npz, _unpack, _write_npz
 from gmjax.montecarlo.runs import RunScores
 
 

@@ -12,6 +12,8 @@ import numpy as np
 from gmjax._types import Array
 from gmjax.montecarlo.runs import SCORE_NAMES, RunScores
 
+__all__ = ["StudyMoments", "BlockSums"]
+
 HIST_NAMES = ("nees", "position_error")
 HIST_LOG10_LOW, HIST_LOG10_HIGH, HIST_BINS_PER_DECADE = -10.0, 10.0, 1000
 _N_BINS = int((HIST_LOG10_HIGH - HIST_LOG10_LOW) * HIST_BINS_PER_DECADE)

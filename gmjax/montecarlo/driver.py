@@ -17,6 +17,8 @@ from gmjax._progress import Progress
 from gmjax._types import PRNGKey
 from gmjax.filters.base import Filter
 from gmjax.models.base import Scenario, simulate
+from gmjax.montecarlo._checkpoint import _read_checkpoint, _study_config, _write_checkpoint
+from gmjax.montecarlo._files import _remove_stale_tmp
 from gmjax.montecarlo.accumulate import (
     StudyMoments,
     _block_sums,
@@ -26,10 +28,10 @@ from gmjax.montecarlo.accumulate import (
     _shifted_sums,
     _ShiftedSums,
 )
-from gmjax.montecarlo.checkpoint import _read_checkpoint, _study_config, _write_checkpoint
-from gmjax.montecarlo.files import _remove_stale_tmp
 from gmjax.montecarlo.result import MonteCarloResult, _finalize
 from gmjax.montecarlo.runs import RunScores, _filter_simulated, _simulate_run, run_key, score_filtered
+
+__all__ = ["monte_carlo", "default_chunk_size"]
 
 # ----------------------------------------------------------------------------- the driver
 

@@ -13,6 +13,16 @@ from gmjax.filters.base import Filter
 from gmjax.models.base import Scenario
 from gmjax.montecarlo.runs import RunScores, run_key, score_run
 
+__all__ = [
+    "study_scores",
+    "study_loss",
+    "armse_loss",
+    "anees_loss",
+    "aeise_loss",
+    "count_loss",
+    "weighted_loss",
+]
+
 # ----------------------------------------------------------------------------- differentiable studies
 
 

@@ -11,6 +11,7 @@ from typing import Any, NamedTuple, Sequence, cast
 import jax
 import numpy as np
 
+from gmjax.montecarlo._files import _pack, _read_npz, _unpack, _write_npz
 from gmjax.montecarlo.accumulate import (
     BlockSums,
     StudyMoments,
@@ -23,8 +24,9 @@ from gmjax.montecarlo.accumulate import (
     _insert_node,
     _shifted_sums,
 )
-from gmjax.montecarlo.files import _pack, _read_npz, _unpack, _write_npz
 from gmjax.montecarlo.runs import SCORE_NAMES, RunScores
+
+__all__ = ["MonteCarloResult", "load_result", "merge", "summarize", "json_safe"]
 
 # ----------------------------------------------------------------------------- results
 

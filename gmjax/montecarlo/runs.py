@@ -12,6 +12,8 @@ from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter, StepInputs, run
 from gmjax.models.base import Scenario, simulate
 
+__all__ = ["RunScores", "FilteredRun", "run_key", "filter_run", "score_run", "score_filtered"]
+
 SCORE_NAMES = ("sq_error", "position_sq_error", "nees", "n_components", "ise", "cost", "flags")
 
 

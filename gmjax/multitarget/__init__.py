@@ -7,6 +7,9 @@ module              contents
                     :func:`run` over padded measurement sets, state extraction (hard and relaxed)
 ``cphd``            the GM-CPHD filter (Vo, Vo & Cantoni 2007) under the same contract: the intensity
                     and the cardinality distribution, MAP state extraction (run it with :func:`run`)
+``cardinality``     the CPHD's cardinality algebra in the log domain (ESFs, prediction, ``Upsilon``)
+``scans``           padded measurement sets of any sizes (:func:`pad_scans`), their masks
+``extraction``      state extraction, hard (Vo & Ma Table III) and relaxed
 ``relaxed``         :func:`RelaxedVoMa` (``VoMa(mode="soft")``): Vo–Ma with soft gates (differentiable)
 ``scenarios``       multi-target scenarios and their simulation (births, deaths, ``P_D``, clutter)
 ``metrics``         OSPA, GOSPA (with its decomposition) and a relaxed GOSPA, via an exact

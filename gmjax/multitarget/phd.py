@@ -49,7 +49,7 @@ Design choices (see also the builder :func:`gm_phd`):
 * Stateful reducers get a fresh state at every step (``reducer.init(merge_capacity)``): no memory
   across steps.
 
-GM-CPHD (the cardinalised filter) is not implemented.
+The cardinalised filter (GM-CPHD) is :mod:`gmjax.multitarget.cphd`, built from this module's pieces.
 """
 
 from __future__ import annotations
@@ -66,8 +66,9 @@ from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs, scan_ste
 from gmjax.filters.local import LOCAL_FILTERS, LocalFilter, gaussian_moments, local_filter_for
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import StateSpaceModel
+from gmjax.multitarget.extraction import Estimates, extract, soft_estimates
+from gmjax.multitarget.scans import PaddedScans, measurement_mask, pad_scans
 from gmjax.reduction import VoMa
-from gmjax.reduction.relax import soft_step, validate_mode
 
 __all__ = [
     "PHDParams",
@@ -125,23 +126,6 @@ class PHDState(NamedTuple):
     intensity: GaussianMixture
 
 
-class Estimates(NamedTuple):
-    """Extracted target states as a padded set.
-
-    Attributes:
-        states: ``(E, d)`` extracted means (0 in padded rows).
-        mask: ``(E,)`` which rows are estimates.
-        n_estimates: ``()`` int32, the number extracted before padding (may exceed ``E``: then
-            ``overflow``).
-        overflow: ``()`` bool, more estimates than ``E`` (the heaviest components come first).
-    """
-
-    states: Array
-    mask: Array
-    n_estimates: Array
-    overflow: Array
-
-
 def empty_intensity(capacity: int, dim: int, dtype: Any = None) -> GaussianMixture:
     """An intensity with no component (``capacity`` padded slots)."""
     dtype = jnp.result_type(float) if dtype is None else dtype
@@ -151,81 +135,6 @@ def empty_intensity(capacity: int, dim: int, dtype: Any = None) -> GaussianMixtu
         jnp.broadcast_to(jnp.eye(dim, dtype=dtype), (capacity, dim, dim)),
         jnp.zeros(capacity, bool),
     )
-
-
-def measurement_mask(zs: Array) -> Array:
-    """``(..., M)`` bool: which rows of a padded measurement set ``(..., M, m)`` are measurements (finite
-    rows; a NaN row is an absent measurement, a row with an infinite entry is ignored and flagged)."""
-    return jnp.all(jnp.isfinite(zs), axis=-1)
-
-
-class PaddedScans(NamedTuple):
-    """Measurement sets of any sizes in one padded array (the input of :func:`run`).
-
-    Attributes:
-        zs: ``(T, M, m)``, scan ``k``'s first ``min(n_k, M)`` measurements, then NaN rows.
-        n_measurements: ``(T,)`` int32, ``n_k``, the measurements each scan had (before dropping).
-        overflow: ``(T,)`` bool, the scan had more than ``M`` measurements: its rows past ``M`` were
-            dropped and the filter never saw them.
-    """
-
-    zs: Array
-    n_measurements: Array
-    overflow: Array
-
-
-def pad_scans(scans: Any, max_measurements: int, *, dtype: Any = None) -> PaddedScans:
-    """Pad a list of measurement sets of different sizes to ``(T, M, m)``, flagging what does not fit.
-
-    A padded array cannot show that its producer dropped rows: a scan of 40 returns cut to ``M = 32``
-    rows looks like a scan of 32. Build the array here (as :func:`~gmjax.multitarget.simulate` does) so
-    that every cut scan is flagged in ``overflow``; report or refuse those scans, or pass a larger
-    ``max_measurements``. Rows are kept in the order given.
-
-    Args:
-        scans: a sequence of ``T`` arrays ``(n_k, m)`` (``n_k`` may be 0: an empty scan, shape
-            ``(0, m)`` or ``[]``), concrete values of finite numbers.
-        max_measurements: ``M >= 1``, the rows of each padded scan.
-        dtype: floating dtype of ``zs`` (default: the JAX default float).
-
-    Returns:
-        A :class:`PaddedScans`.
-
-    Raises:
-        ValueError: naming the scan: not a ``(n, m)`` array, ``m`` not that of the other scans, a
-            NaN or infinite entry (NaN marks an absent row in the padded form), or ``max_measurements``
-            not a positive int.
-    """
-    if isinstance(max_measurements, bool) or not isinstance(max_measurements, (int, np.integer)):
-        raise ValueError(f"max_measurements: expected a positive int, got {max_measurements!r}")
-    M = int(max_measurements)
-    if M < 1:
-        raise ValueError(f"max_measurements: expected a positive int, got {M}")
-    arrays = [np.asarray(z, dtype=np.float64) for z in scans]
-    if not arrays:
-        raise ValueError("scans: expected at least one scan")
-    dims = {a.shape[1] for a in arrays if a.ndim == 2 and a.shape[0] > 0}
-    if len(dims) > 1:
-        raise ValueError(f"scans: the scans' measurements differ in dimension m: {sorted(dims)}")
-    if not dims:
-        raise ValueError("scans: every scan is empty, so the measurement dimension m is unknown")
-    (m,) = dims
-    zs = np.full((len(arrays), M, m), np.nan)
-    counts = np.zeros(len(arrays), np.int32)
-    for k, a in enumerate(arrays):
-        if a.size == 0:
-            continue
-        if a.ndim != 2 or a.shape[1] != m:
-            raise ValueError(f"scans[{k}]: expected shape (n, {m}), got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(
-                f"scans[{k}]: holds a NaN or infinite entry (row {int(np.argwhere(~np.isfinite(a))[0, 0])}); "
-                "NaN marks an absent row in the padded form, so leave absent measurements out"
-            )
-        counts[k] = a.shape[0]
-        zs[k, : min(a.shape[0], M)] = a[:M]
-    dtype = jnp.zeros(()).dtype if dtype is None else dtype
-    return PaddedScans(jnp.asarray(zs, dtype), jnp.asarray(counts), jnp.asarray(counts > M))
 
 
 # ----------------------------------------------------------------------------- the recursion
@@ -320,8 +229,7 @@ def _truncate(gm: GaussianMixture, capacity: int) -> tuple[GaussianMixture, Arra
     if capacity >= gm.capacity:
         zero = jnp.zeros((), gm.weights.dtype)
         return gmm.pad(gm, capacity) if capacity > gm.capacity else gm, zero, zero
-    w = jnp.where(gm.mask, gm.weights, -jnp.inf)
-    _, idx = jax.lax.top_k(w, capacity)
+    idx, _ = gmm.heaviest_slots(gm.weights, gm.mask, capacity)
     kept = jnp.zeros(gm.capacity, bool).at[idx].set(True)
     dropped = gm.mask & ~kept
     w0 = jnp.where(gm.mask, gm.weights, 0.0)
@@ -353,60 +261,6 @@ def _fit(gm: GaussianMixture, capacity: int) -> tuple[GaussianMixture, Array]:
     if gm.capacity < capacity:
         return gmm.pad(gm, capacity), jnp.zeros((), bool)
     return gmm.top_k(gm, capacity), gmm.n_active(gm) > capacity
-
-
-def extract(intensity: GaussianMixture, threshold: Any = 0.5, *, max_estimates: int) -> Estimates:
-    """Multi-target state extraction (Vo & Ma 2006, Table III).
-
-    Every component with ``w > threshold`` contributes ``n = #{r >= 0 : w > r + threshold}`` copies of
-    its mean (``round(w)`` for ``threshold = 0.5``, ties rounded down), heaviest components first.
-
-    Args:
-        intensity: the posterior intensity, capacity ``J``.
-        threshold: ``()`` the extraction threshold (may be traced).
-        max_estimates: static ``E``, the capacity of the estimate set.
-    """
-    w = jnp.where(intensity.mask, intensity.weights, 0.0)
-    thr = jnp.asarray(threshold, w.dtype)
-    copies = jnp.where(w > thr, jnp.ceil(w - thr), 0.0).astype(jnp.int32)
-    order = jnp.argsort(-w, stable=True)
-    copies_o = copies[order]
-    ends = jnp.cumsum(copies_o)
-    count = ends[-1]
-    slot = jnp.arange(max_estimates)
-    which = jnp.searchsorted(ends, slot, side="right")
-    mask = slot < count
-    comp = order[jnp.minimum(which, intensity.capacity - 1)]
-    states = jnp.where(mask[:, None], intensity.means[comp], 0.0)
-    return Estimates(states, mask, count, count > max_estimates)
-
-
-def soft_estimates(
-    intensity: GaussianMixture,
-    threshold: Any = 0.5,
-    temperature: Any = 0.0,
-    *,
-    max_copies: int = 2,
-    mode: str = "soft",
-) -> tuple[Array, Array]:
-    """Relaxed state extraction: every component's mean ``max_copies`` times with existence weights.
-
-    Copy ``r`` of component ``j`` exists with weight ``sigma((w_j - r - threshold) / T)``; with
-    ``T = 0`` the weights are exactly the 0/1 decisions of :func:`extract` (``w > r + threshold``), up
-    to ``max_copies`` copies per component. Feed the result to
-    :func:`gmjax.multitarget.metrics.soft_gospa`.
-
-    Returns:
-        ``(candidates (J max_copies, d), existence (J max_copies,))``.
-    """
-    validate_mode(mode)
-    w = jnp.where(intensity.mask, intensity.weights, 0.0)
-    r = jnp.arange(max_copies, dtype=w.dtype)
-    thr = jnp.asarray(threshold, w.dtype)
-    e = soft_step(w[:, None] - r[None, :] - thr, temperature, mode=mode, strict=True)
-    e = jnp.where(intensity.mask[:, None], e, 0.0)
-    cand = jnp.repeat(intensity.means, max_copies, axis=0)
-    return cand, e.reshape(-1)
 
 
 # ----------------------------------------------------------------------------- the filter
