@@ -45,6 +45,7 @@ from gmjax.multitarget.relaxed import RelaxedVoMa as RelaxedVoMa
 from gmjax.multitarget.scenarios import MultiTargetScenario as MultiTargetScenario
 from gmjax.multitarget.scenarios import bucket_capacity as bucket_capacity
 from gmjax.multitarget.scenarios import clutter_capacity as clutter_capacity
+from gmjax.multitarget.scenarios import crossing_targets as crossing_targets
 from gmjax.multitarget.scenarios import range_bearing as range_bearing
 from gmjax.multitarget.scenarios import simulate as simulate
 from gmjax.multitarget.scenarios import vo_ma_linear as vo_ma_linear
@@ -79,6 +80,7 @@ __all__ = [
     "MultiTargetScenario",
     "bucket_capacity",
     "clutter_capacity",
+    "crossing_targets",
     "range_bearing",
     "simulate",
     "vo_ma_linear",

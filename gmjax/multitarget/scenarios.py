@@ -43,6 +43,7 @@ __all__ = [
     "MultiTargetSample",
     "simulate",
     "vo_ma_linear",
+    "crossing_targets",
     "range_bearing",
     "cv_model",
 ]
@@ -316,6 +317,108 @@ def vo_ma_linear(
         death_times=jnp.array([n_steps + 1, 70, n_steps + 1, 85], jnp.int32),
         max_measurements=int(max_measurements),
         description=vo_ma_linear.__doc__ or "",
+    )
+
+
+def crossing_targets(
+    *,
+    clutter_rate: float = 30.0,
+    detection_prob: float = 0.9,
+    n_steps: int = 100,
+    max_measurements: int | None = None,
+    dtype: Any = None,
+) -> MultiTargetScenario:
+    """Eight targets on straight tracks, three pairs crossing in the middle, in dense clutter.
+
+    A harder companion of :func:`vo_ma_linear` (the PHD vs CPHD study of issue 47): more targets, staggered
+    births and deaths, tracks that cross, more clutter and a lower ``P_D``. Every number is our choice.
+
+    * Model: that of :func:`vo_ma_linear` (:func:`cv_model`, ``T = 1 s``, ``sigma_v = 5 m/s^2``, position
+      measurements with ``sigma_eps = 10 m``), ``P_S = 0.99``, ``P_D = detection_prob`` (0.9), clutter
+      ``Poisson(clutter_rate)`` (30) per scan uniform over the region ``[-1000, 1000]^2`` m.
+    * Births: four sites at the corners ``A = (-600, -600)``, ``B = (600, -600)``, ``C = (-600, 600)``,
+      ``D = (600, 600)``; the birth intensity ``sum_i 0.03 N([site_i, 0, 0], P)``,
+      ``P = diag(100, 100, 400, 400)`` (position sd 10 m, velocity sd 20 m/s: the tracks' speeds are
+      14-28 m/s), i.e. 0.12 expected births per step.
+    * Truth: deterministic tracks (``truth_noise_scale = 0``), target ``i`` born at its site at step
+      ``b_i`` with velocity ``v_i`` (m/s) and alive for ``b_i <= k < death_i``:
+
+      ====  ====  =====  ================  =====
+      i     site  b_i    v_i               death
+      ====  ====  =====  ================  =====
+      0     A     1      (15, 12.5)        80
+      1     B     1      (-15, 12.5)       end
+      2     C     10     (15, -12.5)       end
+      3     D     20     (-20, -16.67)     85
+      4     A     30     (15, 15)          end
+      5     B     40     (-20, 20)         95
+      6     C     50     (-2, -15)         end
+      7     D     60     (-12, 0)          end
+      ====  ====  =====  ================  =====
+
+      ("end": ``n_steps + 1``, alive to the last step). The true count rises 2, 3, ..., 8 (steps
+      60-79), then falls to 7, 6 and 5 (steps 95-100). Targets 0 and 1 cross at ``(0, -100)`` at step 41,
+      2 and 3 at ``(0, 100)`` at step 50, 4 and 5 at ``(0, 0)`` at step 70 (the same point at the same
+      step); every other pair of live targets stays at least 95 m apart. All tracks stay inside
+      ``[-885, 885]^2`` over 100 steps.
+    * Capacity: ``max_measurements`` defaults to ``clutter_capacity(clutter_rate, 8)`` (128 at the
+      default rate): a scan overflows with probability below ``1e-6``.
+
+    Raises:
+        ValueError: a negative or non-finite ``clutter_rate``, ``detection_prob`` outside ``(0, 1]``,
+            ``n_steps`` or ``max_measurements`` below 1.
+    """
+    rate = float(clutter_rate)
+    if not math.isfinite(rate) or rate < 0:
+        raise ValueError(f"clutter_rate: expected a finite rate >= 0, got {clutter_rate!r}")
+    if not 0.0 < float(detection_prob) <= 1.0:
+        raise ValueError(f"detection_prob: must lie in (0, 1], got {detection_prob!r}")
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 1:
+        raise ValueError(f"n_steps: expected an int >= 1, got {n_steps!r}")
+    if max_measurements is None:
+        max_measurements = clutter_capacity(rate, 8)
+    elif (
+        isinstance(max_measurements, bool)
+        or not isinstance(max_measurements, (int, np.integer))
+        or max_measurements < 1
+    ):
+        raise ValueError(f"max_measurements: expected an int >= 1, got {max_measurements!r}")
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    model = cv_model(5.0, "position", 100.0 * np.eye(2), dtype=dtype)
+    sites = np.array([[-600.0, -600.0], [600.0, -600.0], [-600.0, 600.0], [600.0, 600.0]])  # A, B, C, D
+    birth = _birth(np.hstack([sites, np.zeros((4, 2))]), np.diag([100.0, 100.0, 400.0, 400.0]), 0.03, dtype)
+    site = [0, 1, 2, 3, 0, 1, 2, 3]
+    births = [1, 1, 10, 20, 30, 40, 50, 60]
+    # the three crossings: velocity = (crossing point - site) / (crossing step - birth step)
+    velocities = np.array(
+        [
+            (np.array([0.0, -100.0]) - sites[0]) / 40,  # 0 meets 1 at (0, -100), step 41
+            (np.array([0.0, -100.0]) - sites[1]) / 40,
+            (np.array([0.0, 100.0]) - sites[2]) / 40,  # 2 meets 3 at (0, 100), step 50
+            (np.array([0.0, 100.0]) - sites[3]) / 30,
+            (np.array([0.0, 0.0]) - sites[0]) / 40,  # 4 meets 5 at (0, 0), step 70
+            (np.array([0.0, 0.0]) - sites[1]) / 30,
+            [-2.0, -15.0],
+            [-12.0, 0.0],
+        ]
+    )
+    x0 = np.hstack([sites[site], velocities])
+    end = int(n_steps) + 1
+    deaths = [80, end, end, 85, end, 95, end, end]
+    return MultiTargetScenario(
+        name="crossing_targets",
+        model=model,
+        n_steps=int(n_steps),
+        birth=birth,
+        survival_prob=0.99,
+        detection_prob=float(detection_prob),
+        clutter_rate=rate,
+        region=(jnp.full(2, -1000.0, dtype), jnp.full(2, 1000.0, dtype)),
+        initial_states=jnp.asarray(x0, dtype),
+        birth_times=jnp.array(births, jnp.int32),
+        death_times=jnp.array(deaths, jnp.int32),
+        max_measurements=int(max_measurements),
+        description=crossing_targets.__doc__ or "",
     )
 
 
