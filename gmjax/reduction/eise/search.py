@@ -136,7 +136,8 @@ class EISECriterion(NamedTuple):
 
 @pytree_dataclass
 class ConfidenceSearch:
-    """How the confidence multiplier ``λ`` is chosen (seed 000 Table 1 step 7; seed 003 §3.2).
+    """How the confidence multiplier ``λ`` is chosen (seed 000 Table 1 step 7; seed 003 Algorithm 1
+    steps 5–7).
 
     A frozen pytree: the scope, ``α``, the temperature, the tolerance and the range scale are traced
     leaves (differentiable, batchable); the grid size, the Newton steps, the clustering dimensions
