@@ -92,15 +92,15 @@ from gmjax.multitarget.phd import (
     PHDParams,
     _as_noise,
     _check_prob,
+    _check_sizes_and_reducer,
     _fit,
+    _initial_intensity,
     _local_states,
     _reduce,
     _truncate,
-    empty_intensity,
     measurement_mask,
     predict_intensity,
 )
-from gmjax.reduction import VoMa
 
 __all__ = [
     "CPHDParams",
@@ -434,28 +434,11 @@ def gm_cphd(
     ):
         if not float(tol) >= 0:
             raise ValueError(f"{name}: must be >= 0, got {tol!r}")
-    capacity = int(capacity)
-    if capacity < 1:
-        raise ValueError(f"capacity: must be >= 1, got {capacity}")
-    merge_capacity = 4 * capacity if merge_capacity is None else int(merge_capacity)
-    if merge_capacity < 1:
-        raise ValueError(f"merge_capacity: must be >= 1, got {merge_capacity}")
-    max_estimates = capacity if max_estimates is None else int(max_estimates)
-    if max_estimates < 1:
-        raise ValueError(f"max_estimates: must be >= 1, got {max_estimates}")
-    if reducer_input not in ("intensity", "normalized"):
-        raise ValueError(f"reducer_input: expected 'intensity' or 'normalized', got {reducer_input!r}")
-    if reducer is None:
-        reducer = VoMa(1e-5, 4.0, max_components=min(capacity, merge_capacity))
-    if not (hasattr(reducer, "init") and hasattr(reducer, "reduce")):
-        raise ValueError(f"reducer: expected a Reducer (init, reduce), got {type(reducer).__name__}")
+    capacity, merge_capacity, max_estimates, reducer = _check_sizes_and_reducer(
+        capacity, merge_capacity, max_estimates, reducer_input, reducer
+    )
     dtype = birth.weights.dtype
-    if initial is None:
-        initial = empty_intensity(capacity, d, birth.means.dtype)
-    elif not isinstance(initial, GaussianMixture) or initial.dim != d:
-        raise ValueError(f"initial: expected a GaussianMixture of dimension {d}")
-    else:
-        initial, _ = _fit(initial, capacity)
+    initial = _initial_intensity(initial, capacity, d, birth.means.dtype)
     if initial_cardinality is None:
         pmf0 = np.exp(np.asarray(poisson_log_pmf(n_max, float(gmm.total_weight(initial))), np.float64))
         initial_cardinality = pmf0 / pmf0.sum()

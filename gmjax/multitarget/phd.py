@@ -293,6 +293,41 @@ def _check_prob(value, name, *, open_low=False):
         raise ValueError(f"{name}: must lie in {'(0, 1]' if open_low else '[0, 1]'}, got {value!r}")
 
 
+def _check_sizes_and_reducer(
+    capacity: Any, merge_capacity: Any, max_estimates: Any, reducer_input: str, reducer: Any
+) -> tuple[int, int, int, Any]:
+    """The builders' capacities (``merge_capacity`` default ``4 capacity``, ``max_estimates`` default
+    ``capacity``) and reducer (default Vo–Ma, ``T = 1e-5``, ``U = 4``), checked (``ValueError`` naming
+    the argument)."""
+    capacity = int(capacity)
+    if capacity < 1:
+        raise ValueError(f"capacity: must be >= 1, got {capacity}")
+    merge_capacity = 4 * capacity if merge_capacity is None else int(merge_capacity)
+    if merge_capacity < 1:
+        raise ValueError(f"merge_capacity: must be >= 1, got {merge_capacity}")
+    max_estimates = capacity if max_estimates is None else int(max_estimates)
+    if max_estimates < 1:
+        raise ValueError(f"max_estimates: must be >= 1, got {max_estimates}")
+    if reducer_input not in ("intensity", "normalized"):
+        raise ValueError(f"reducer_input: expected 'intensity' or 'normalized', got {reducer_input!r}")
+    if reducer is None:
+        reducer = VoMa(1e-5, 4.0, max_components=min(capacity, merge_capacity))
+    if not (hasattr(reducer, "init") and hasattr(reducer, "reduce")):
+        raise ValueError(f"reducer: expected a Reducer (init, reduce), got {type(reducer).__name__}")
+    return capacity, merge_capacity, max_estimates, reducer
+
+
+def _initial_intensity(initial: GaussianMixture | None, capacity: int, d: int, dtype: Any) -> GaussianMixture:
+    """The intensity at time 0 in ``capacity`` slots (default: empty)."""
+    if initial is None:
+        initial = empty_intensity(capacity, d, dtype)
+    elif not isinstance(initial, GaussianMixture) or initial.dim != d:
+        raise ValueError(f"initial: expected a GaussianMixture of dimension {d}")
+    else:
+        initial, _ = _fit(initial, capacity)
+    return initial
+
+
 def gm_phd(
     model: StateSpaceModel,
     *,
@@ -370,29 +405,12 @@ def gm_phd(
         raise ValueError(f"clutter_density: must be > 0, got {clutter_density!r}")
     if float(clutter_rate) == 0 and float(detection_prob) == 1:
         pass  # allowed: kappa = 0, every measurement is a detection (log-domain update handles it)
-    capacity = int(capacity)
-    if capacity < 1:
-        raise ValueError(f"capacity: must be >= 1, got {capacity}")
-    merge_capacity = 4 * capacity if merge_capacity is None else int(merge_capacity)
-    if merge_capacity < 1:
-        raise ValueError(f"merge_capacity: must be >= 1, got {merge_capacity}")
-    max_estimates = capacity if max_estimates is None else int(max_estimates)
-    if max_estimates < 1:
-        raise ValueError(f"max_estimates: must be >= 1, got {max_estimates}")
-    if reducer_input not in ("intensity", "normalized"):
-        raise ValueError(f"reducer_input: expected 'intensity' or 'normalized', got {reducer_input!r}")
-    if reducer is None:
-        reducer = VoMa(1e-5, 4.0, max_components=min(capacity, merge_capacity))
-    if not (hasattr(reducer, "init") and hasattr(reducer, "reduce")):
-        raise ValueError(f"reducer: expected a Reducer (init, reduce), got {type(reducer).__name__}")
+    capacity, merge_capacity, max_estimates, reducer = _check_sizes_and_reducer(
+        capacity, merge_capacity, max_estimates, reducer_input, reducer
+    )
     if float(extract_threshold) < 0:
         raise ValueError(f"extract_threshold: must be >= 0, got {extract_threshold!r}")
-    if initial is None:
-        initial = empty_intensity(capacity, d, birth.means.dtype)
-    elif not isinstance(initial, GaussianMixture) or initial.dim != d:
-        raise ValueError(f"initial: expected a GaussianMixture of dimension {d}")
-    else:
-        initial, _ = _fit(initial, capacity)
+    initial = _initial_intensity(initial, capacity, d, birth.means.dtype)
     lf = local_filter_for(model, local, **(local_kwargs or {}))
     dtype = birth.weights.dtype
     params = PHDParams(
