@@ -519,9 +519,9 @@ def test_same_bits_on_four_forced_host_devices(tmp_path):
         r.save(r"{tmp_path / "part1.npz"}")
         """
     )
-    env = dict(
+    env = dict(  # the parent's flags (conftest.py's optimisation level) plus four host devices
         os.environ,
-        XLA_FLAGS="--xla_force_host_platform_device_count=4",
+        XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip(),
         JAX_PLATFORMS="cpu",
         PYTHONPATH=str(ROOT),
     )
@@ -566,7 +566,8 @@ def test_two_processes_with_jax_distributed_equal_one_process(tmp_path):
         )
     )
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT))
-    env.pop("XLA_FLAGS", None)
+    # compiled as the parent compiles (conftest.py's flags), without any forced device count
+    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f)
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", script, str(i), f"127.0.0.1:{port}", str(tmp_path)],

@@ -418,8 +418,8 @@ def _assert_same_derivative(ours, scan):
 def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     """Newton stops once every run is done (``while_loop``s) and returns exactly what the fixed
     8-step ``scan`` returns, alone and under vmap; its forward-mode derivative (a custom JVP through
-    that scan) equals the scan's. Reverse mode: the slow test below, and the 2-D search's ``jax.grad``
-    against finite differences (``test_search_in_2d_gradient_matches_finite_differences``)."""
+    that scan) equals the scan's. Reverse mode: the slow test below, and the 1-D search's ``jax.grad``
+    against finite differences (``test_search_in_1d_gradient_matches_finite_differences``)."""
     args, lam0, early, fixed = _newton_early_and_fixed()
     batched_early, batched_fixed = jax.jit(jax.vmap(early))(args, lam0), jax.jit(jax.vmap(fixed))(args, lam0)
     for a, b in zip(batched_early, batched_fixed):
@@ -583,6 +583,7 @@ def _search_2d_lam_slope(derivative):
     return slope, (lam_newton(0.01 + h) - lam_newton(0.01 - h)) / (2 * h)
 
 
+@pytest.mark.slow  # a minute of compiling; 1-D: test_pcm_jit_eager_vmap_padding_and_dtypes_grid_search
 def test_search_in_2d_jit_eager_vmap_float32_and_derivative():
     """The 2-D search (distinct pairs): jit == eager, vmap == loop, float32 near float64, and the
     forward-mode derivative of its ``λ`` through Newton (the custom JVP's scan runs over all pairs)
@@ -610,10 +611,23 @@ def test_search_in_2d_jit_eager_vmap_float32_and_derivative():
     np.testing.assert_allclose(slope, fd, rtol=1e-4)
 
 
+@pytest.mark.slow  # 75 s of compiling; the default suite's twin is the 1-D test below
 def test_search_in_2d_gradient_matches_finite_differences():
-    """``jax.grad`` of the 2-D search's ``λ`` (the transpose of the custom JVP, pairs dropped): the
-    default suite's reverse-mode check through Newton (half a minute of compiling)."""
+    """``jax.grad`` of the 2-D search's ``λ`` (the transpose of the custom JVP, pairs dropped) equals
+    a central finite difference."""
     slope, fd = _search_2d_lam_slope(jax.grad)
+    assert np.isfinite(slope) and slope != 0.0
+    np.testing.assert_allclose(slope, fd, rtol=1e-4)
+
+
+def test_search_in_1d_gradient_matches_finite_differences():
+    """The default suite's reverse-mode check through Newton: ``jax.grad`` of a 1-D search's ``λ``
+    (the transpose of the custom JVP) equals a central finite difference."""
+    gm = random_gm(1, n=10, d=1)[0]
+    lam_newton = jax.jit(lambda a: search_confidence(gm, ConfidenceSearch(alpha=a)).lam_newton)
+    slope = jax.jit(jax.grad(lambda a: search_confidence(gm, ConfidenceSearch(alpha=a)).lam_newton))(0.01)
+    h = 1e-5
+    fd = (lam_newton(0.01 + h) - lam_newton(0.01 - h)) / (2 * h)
     assert np.isfinite(slope) and slope != 0.0
     np.testing.assert_allclose(slope, fd, rtol=1e-4)
 
