@@ -74,7 +74,7 @@ import numpy as np
 from gmjax import mixture as gmm
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
-from gmjax.filters.local import LOCAL_FILTERS, LocalFilter, gaussian_moments, local_filter_for
+from gmjax.filters.local import LocalFilter, gaussian_moments, local_filter_for
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import StateSpaceModel
 from gmjax.multitarget.cardinality import (
@@ -90,12 +90,13 @@ from gmjax.multitarget.cardinality import (
 from gmjax.multitarget.phd import (
     Estimates,
     PHDParams,
-    _as_noise,
+    _check_model_and_birth,
     _check_prob,
     _check_sizes_and_reducer,
     _fit,
     _initial_intensity,
     _local_states,
+    _model_noises,
     _reduce,
     _truncate,
     measurement_mask,
@@ -412,16 +413,8 @@ def gm_cphd(
     Raises:
         ValueError: a bad argument, naming it.
     """
-    if not isinstance(model, StateSpaceModel):
-        raise ValueError(f"model: expected a StateSpaceModel, got {type(model).__name__}")
-    if local not in LOCAL_FILTERS:
-        raise ValueError(f"local: unknown local filter {local!r}; expected one of {sorted(LOCAL_FILTERS)}")
+    d, m = _check_model_and_birth(model, local, birth)
     n_max = _check_n_max(n_max)
-    d, m = model.state_dim, model.measurement_dim
-    if not isinstance(birth, GaussianMixture) or birth.dim != d:
-        raise ValueError(f"birth: expected a GaussianMixture of dimension {d}")
-    if np.any(np.asarray(birth.weights) < 0) or not np.all(np.isfinite(np.asarray(birth.weights))):
-        raise ValueError("birth: weights must be finite and non-negative")
     _check_prob(survival_prob, "survival_prob", open_low=True)
     _check_prob(detection_prob, "detection_prob", open_low=True)
     if not float(clutter_rate) >= 0 or not np.isfinite(float(clutter_rate)):
@@ -444,16 +437,15 @@ def gm_cphd(
         initial_cardinality = pmf0 / pmf0.sum()
     initial_pmf = _check_pmf(initial_cardinality, n_max, dtype)
     lf = local_filter_for(model, local, **(local_kwargs or {}))
+    process_noise, measurement_noise = _model_noises(model, dtype)
     params = CPHDParams(
         birth=birth,
         survival_prob=jnp.asarray(survival_prob, dtype),
         detection_prob=jnp.asarray(detection_prob, dtype),
         clutter_rate=jnp.asarray(clutter_rate, dtype),
         clutter_density=jnp.asarray(clutter_density, dtype),
-        process_noise=_as_noise(gaussian_moments(model.process_noise), d, "model.process_noise", dtype),
-        measurement_noise=_as_noise(
-            gaussian_moments(model.measurement_noise), m, "model.measurement_noise", dtype
-        ),
+        process_noise=process_noise,
+        measurement_noise=measurement_noise,
         reducer=reducer,
         truncation_tolerance=jnp.asarray(truncation_tolerance, dtype),
         cardinality_tolerance=jnp.asarray(cardinality_tolerance, dtype),

@@ -56,7 +56,7 @@ import numpy as np
 from gmjax import mixture as gmm
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter, StepFlags, StepInfo, StepInputs
-from gmjax.filters.local import LOCAL_FILTERS, LocalFilter, gaussian_moments, local_filter_for
+from gmjax.filters.local import LocalFilter, gaussian_moments, local_filter_for
 from gmjax.mixture import GaussianMixture
 from gmjax.models.base import StateSpaceModel
 from gmjax.multitarget.hypotheses import (
@@ -67,7 +67,7 @@ from gmjax.multitarget.hypotheses import (
     hypothesis_marginals,
     log_mixture_likelihood,
 )
-from gmjax.multitarget.phd import _as_noise, _check_prob
+from gmjax.multitarget.phd import _check_model_and_birth, _check_prob, _model_noises
 from gmjax.multitarget.scans import measurement_mask
 
 __all__ = [
@@ -485,15 +485,8 @@ def gm_lmb(
     Raises:
         ValueError: a bad argument, naming it.
     """
-    if not isinstance(model, StateSpaceModel):
-        raise ValueError(f"model: expected a StateSpaceModel, got {type(model).__name__}")
-    if local not in LOCAL_FILTERS:
-        raise ValueError(f"local: unknown local filter {local!r}; expected one of {sorted(LOCAL_FILTERS)}")
-    d, m = model.state_dim, model.measurement_dim
-    if not isinstance(birth, GaussianMixture) or birth.dim != d:
-        raise ValueError(f"birth: expected a GaussianMixture of dimension {d}")
-    bw = np.asarray(birth.weights)[np.asarray(birth.mask)]
-    if not np.all(np.isfinite(bw)) or np.any(bw < 0) or np.any(bw > 1):
+    d, m = _check_model_and_birth(model, local, birth)
+    if np.any(np.asarray(birth.weights)[np.asarray(birth.mask)] > 1):
         raise ValueError(
             "birth: weights are the birth tracks' existence probabilities; they must lie in [0, 1]"
         )
@@ -524,16 +517,15 @@ def gm_lmb(
     T, J, G, E = sizes["capacity"], sizes["components_per_track"], sizes["n_samples"], sizes["max_estimates"]
     dtype = birth.weights.dtype
     lf = local_filter_for(model, local, **(local_kwargs or {}))
+    process_noise, measurement_noise = _model_noises(model, dtype)
     params = LMBParams(
         birth=birth,
         survival_prob=jnp.asarray(survival_prob, dtype),
         detection_prob=jnp.asarray(detection_prob, dtype),
         clutter_rate=jnp.asarray(clutter_rate, dtype),
         clutter_density=jnp.asarray(clutter_density, dtype),
-        process_noise=_as_noise(gaussian_moments(model.process_noise), d, "model.process_noise", dtype),
-        measurement_noise=_as_noise(
-            gaussian_moments(model.measurement_noise), m, "model.measurement_noise", dtype
-        ),
+        process_noise=process_noise,
+        measurement_noise=measurement_noise,
         existence_threshold=jnp.asarray(existence_threshold, dtype),
         component_threshold=jnp.asarray(component_threshold, dtype),
     )

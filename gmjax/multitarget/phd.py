@@ -287,6 +287,30 @@ def _as_noise(noise, dim: int, name: str, dtype):
     return jnp.asarray(mean, dtype), jnp.asarray(cov, dtype)
 
 
+def _check_model_and_birth(model: Any, local: Any, birth: Any) -> tuple[int, int]:
+    """The multi-target builders' checks of the model, the local filter's name and the birth mixture
+    (``ValueError`` naming the argument); returns ``(d, m)``."""
+    if not isinstance(model, StateSpaceModel):
+        raise ValueError(f"model: expected a StateSpaceModel, got {type(model).__name__}")
+    if local not in LOCAL_FILTERS:
+        raise ValueError(f"local: unknown local filter {local!r}; expected one of {sorted(LOCAL_FILTERS)}")
+    d, m = model.state_dim, model.measurement_dim
+    if not isinstance(birth, GaussianMixture) or birth.dim != d:
+        raise ValueError(f"birth: expected a GaussianMixture of dimension {d}")
+    if np.any(np.asarray(birth.weights) < 0) or not np.all(np.isfinite(np.asarray(birth.weights))):
+        raise ValueError("birth: weights must be finite and non-negative")
+    return d, m
+
+
+def _model_noises(model: StateSpaceModel, dtype: Any) -> tuple[Any, Any]:
+    """The model's process and measurement noises as checked ``(mean, cov)`` pairs of ``dtype``."""
+    d, m = model.state_dim, model.measurement_dim
+    return (
+        _as_noise(gaussian_moments(model.process_noise), d, "model.process_noise", dtype),
+        _as_noise(gaussian_moments(model.measurement_noise), m, "model.measurement_noise", dtype),
+    )
+
+
 def _check_prob(value, name, *, open_low=False):
     v = float(value)
     if not (0.0 < v <= 1.0 if open_low else 0.0 <= v <= 1.0):
@@ -388,15 +412,7 @@ def gm_phd(
     Raises:
         ValueError: a bad argument, naming it.
     """
-    if not isinstance(model, StateSpaceModel):
-        raise ValueError(f"model: expected a StateSpaceModel, got {type(model).__name__}")
-    if local not in LOCAL_FILTERS:
-        raise ValueError(f"local: unknown local filter {local!r}; expected one of {sorted(LOCAL_FILTERS)}")
-    d, m = model.state_dim, model.measurement_dim
-    if not isinstance(birth, GaussianMixture) or birth.dim != d:
-        raise ValueError(f"birth: expected a GaussianMixture of dimension {d}")
-    if np.any(np.asarray(birth.weights) < 0) or not np.all(np.isfinite(np.asarray(birth.weights))):
-        raise ValueError("birth: weights must be finite and non-negative")
+    d, m = _check_model_and_birth(model, local, birth)
     _check_prob(survival_prob, "survival_prob")
     _check_prob(detection_prob, "detection_prob")
     if not float(clutter_rate) >= 0:
@@ -413,16 +429,15 @@ def gm_phd(
     initial = _initial_intensity(initial, capacity, d, birth.means.dtype)
     lf = local_filter_for(model, local, **(local_kwargs or {}))
     dtype = birth.weights.dtype
+    process_noise, measurement_noise = _model_noises(model, dtype)
     params = PHDParams(
         birth=birth,
         survival_prob=jnp.asarray(survival_prob, dtype),
         detection_prob=jnp.asarray(detection_prob, dtype),
         clutter_rate=jnp.asarray(clutter_rate, dtype),
         clutter_density=jnp.asarray(clutter_density, dtype),
-        process_noise=_as_noise(gaussian_moments(model.process_noise), d, "model.process_noise", dtype),
-        measurement_noise=_as_noise(
-            gaussian_moments(model.measurement_noise), m, "model.measurement_noise", dtype
-        ),
+        process_noise=process_noise,
+        measurement_noise=measurement_noise,
         reducer=reducer,
         extract_threshold=jnp.asarray(extract_threshold, dtype),
         truncation_tolerance=jnp.asarray(truncation_tolerance, dtype),
