@@ -35,6 +35,7 @@ _SLOW_NOTEBOOKS = {
     "05_active_cluster_reduction",
     "06_gm_phd",
     "07_learn_glint_noise",  # gmjax.fit: test_fitting, test_docs_examples (docs/fitting.md) by default
+    "08_cphd_and_labelled_tracks",  # gm_cphd, gm_lmb, tracks: test_cphd, test_lmb, test_tracks by default
 }
 
 
