@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 import gmjax.multitarget as mt
+from gmjax import mixture as gmm
+from gmjax import reduction
 from gmjax.filters.base import StepInputs
 from gmjax.filters.local import gaussian_moments, local_filter_for
 from gmjax.multitarget import hypotheses as hyp
@@ -285,3 +287,39 @@ def test_docs_snippet_runs():
     est, sample, switches = namespace["est"], namespace["sample"], namespace["switches"]
     assert np.mean(np.asarray(est["n_estimates"]) == np.asarray(sample.alive).sum(-1)) > 0.8
     assert switches.total == 0 and np.all(np.isfinite(namespace["ospa2"]))
+
+
+def test_a_reducer_per_track_merges_and_preserves_each_track_s_moments():
+    """``reducer=Runnalls(num_out=2)``: each track's ``(1 + M) J`` updated components are merged to two
+    (moment-preserving merges), so every track's mean and covariance equal those of the same update
+    keeping every component; a reducer that merges nothing changes nothing."""
+    sc = _scenario(n_steps=2)
+    sample = mt.simulate(sc, jax.random.key(1))
+    M = sample.zs.shape[1]
+    lf = local_filter_for(sc.model, "kf")
+    inputs = StepInputs(t=jnp.asarray(1))
+    key = jax.random.key(3)
+    everything = _filter(sc, components_per_track=1 + M, component_threshold=0.0)
+    merged = _filter(sc, reducer=reduction.Runnalls(num_out=2), component_threshold=0.0)
+    untouched = _filter(sc, reducer=reduction.Runnalls(num_out=(1 + M) * J))
+
+    def one_update(f):
+        pred = f.predict(f.params, f.init(f.params), inputs)  # step 1: the births, one component each
+        u = hyp.gibbs_uniforms(key, G - 1, pred.existence.shape[0], jnp.float64)
+        return jax.jit(lambda p, z: lmb.update_tracks(lf, f.params, p, z, inputs.t, u, n_tracks=T))(
+            pred, sample.zs[0]
+        )
+
+    full, red = one_update(everything).tracks, one_update(merged).tracks
+    np.testing.assert_array_equal(red.mask, full.mask)
+    np.testing.assert_allclose(red.existence, full.existence, rtol=1e-12)
+    assert np.all(np.asarray(red.density.mask).sum(1) <= 2) and np.any(
+        np.asarray(full.density.mask).sum(1) > 2
+    )
+    for i in np.flatnonzero(np.asarray(full.mask)):
+        track = lambda s: jax.tree_util.tree_map(lambda a: a[i], s.density)  # noqa: E731
+        for a, b in zip(gmm.moments(track(red)), gmm.moments(track(full))):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+    plain, same = one_update(_filter(sc)).tracks, one_update(untouched).tracks
+    for a, b in zip(jax.tree_util.tree_leaves(plain), jax.tree_util.tree_leaves(same)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)

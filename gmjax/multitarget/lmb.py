@@ -95,6 +95,8 @@ class LMBParams(NamedTuple):
         process_noise, measurement_noise: ``(mean, cov)``.
         existence_threshold: ``()`` tracks with ``r' <`` it are dropped.
         component_threshold: ``()`` components with weight ``<`` it are dropped (per track).
+        reducer: ``None``, or a Reducer config applied to each track's ``(1 + M) J`` updated
+            components before the threshold and the ``J`` heaviest are taken (e.g. Runnalls merging).
     """
 
     birth: GaussianMixture
@@ -106,6 +108,7 @@ class LMBParams(NamedTuple):
     measurement_noise: Any
     existence_threshold: Array
     component_threshold: Array
+    reducer: Any = None
 
 
 class LMBState(NamedTuple):
@@ -310,6 +313,15 @@ def _posterior_density(
     cand_covs = jnp.concatenate(
         [tracks.density.covs, jnp.moveaxis(covs, 2, 1).reshape(N, M * J, d, d)], axis=1
     )
+    reducer_overflow = jnp.zeros((), bool)
+    if params.reducer is not None:  # each track's candidates through the reducer (a normalised mixture)
+        cand_live = cand_live & ok[:, None] & tracks.mask[:, None]
+        cand = jax.vmap(gmm.sanitize)(
+            GaussianMixture(jnp.where(cand_live, cand_w, 0.0), cand_means, cand_covs, cand_live)
+        )
+        reduced, overflow = jax.vmap(lambda g: _reduce_track(params.reducer, g, n_components))(cand)
+        cand_w, cand_live, cand_means, cand_covs = reduced.weights, reduced.mask, reduced.means, reduced.covs
+        reducer_overflow = jnp.any(overflow)
     order = jnp.argsort(jnp.where(cand_live, -cand_w, jnp.inf), axis=1, stable=True)[:, :n_components]
     top_w = jnp.take_along_axis(cand_w, order, axis=1)
     top_live = jnp.take_along_axis(cand_live, order, axis=1)
@@ -331,7 +343,16 @@ def _posterior_density(
     c_out = jnp.where(
         keep[..., None, None], jnp.take_along_axis(cand_covs, order[..., None, None], axis=1), eye
     )
-    return GaussianMixture(weights, m_out, c_out, keep)
+    return GaussianMixture(weights, m_out, c_out, keep), reducer_overflow
+
+
+def _reduce_track(reducer: Any, gm: GaussianMixture, n_components: int) -> tuple[GaussianMixture, Array]:
+    """One track's candidate mixture through a Reducer config (a fresh state, no key), padded to at
+    least ``n_components`` slots; ``(reduced, overflow)``."""
+    out, _, info = reducer.reduce(gm, reducer.init(gm.capacity), key=None)
+    if out.capacity < n_components:
+        out = gmm.pad(out, n_components)
+    return out, info.overflow
 
 
 def update_tracks(
@@ -366,7 +387,9 @@ def update_tracks(
     _, r_post, beta, log_norm = hypothesis_marginals(log_eta, samples, distinct)
     feasible = log_norm > -jnp.inf
 
-    density = _posterior_density(params, tracks, r_post, beta, means, covs, log_q, z_mask, J)
+    density, reducer_overflow = _posterior_density(
+        params, tracks, r_post, beta, means, covs, log_q, z_mask, J
+    )
     live = tracks.mask & (r_post > 0)
     cand = live & ~(r_post < jnp.asarray(params.existence_threshold, dtype))
     order = jnp.argsort(jnp.where(cand, -r_post, jnp.inf), stable=True)
@@ -389,7 +412,7 @@ def update_tracks(
         post_density,
         tracks.step,
     )
-    overflow = jnp.sum(cand) > T
+    overflow = (jnp.sum(cand) > T) | reducer_overflow
     n_z = jnp.sum(z_mask).astype(dtype)
     lam = jnp.asarray(params.clutter_rate, dtype)
     log_kappa = jnp.log(lam * jnp.asarray(params.clutter_density, dtype))
@@ -449,6 +472,7 @@ def gm_lmb(
     max_estimates: int | None = None,
     local: str = "kf",
     local_kwargs: dict | None = None,
+    reducer: Any = None,
 ) -> Filter:
     """Build a GM-LMB filter (Reuter, Vo, Vo & Dietmayer 2014) as a :class:`~gmjax.filters.Filter`.
 
@@ -468,6 +492,10 @@ def gm_lmb(
         max_estimates: static ``E``, the capacity of the estimate set (default ``T``).
         local: the component filter (:data:`gmjax.filters.local.LOCAL_FILTERS`); local_kwargs: its
             options.
+        reducer: ``None`` (default: each track keeps its ``J`` heaviest components above
+            ``component_threshold``, as the reference does), or any Reducer config (e.g.
+            ``reduction.Runnalls(num_out=J)``) applied per track to its ``(1 + M) J`` updated
+            components first; its thresholds are traced leaves of ``params.reducer``.
 
     Returns:
         ``Filter(init, predict, update, params)`` with ``params`` an :class:`LMBParams` and states
@@ -476,8 +504,9 @@ def gm_lmb(
         ``(M, m)`` (NaN rows absent) and returns a :class:`StepInfo` with ``mean``/``cov`` the moments
         of the ``r``-weighted union of the track densities, ``loglik`` (:class:`LMBUpdate`),
         ``n_components`` (live components over all tracks), ``flags`` (``overflow``: a probable track
-        cut by ``T`` or more estimates than ``E``; ``repaired``; ``degenerate``: no drawn hypothesis
-        with positive weight; ``nonfinite_measurement``), and ``extra``: ``cardinality`` (``sum r``),
+        cut by ``T``, a reducer that overflowed, or more estimates than ``E``; ``repaired``;
+        ``degenerate``: no drawn hypothesis with positive weight; ``nonfinite_measurement``), and
+        ``extra``: ``cardinality`` (``sum r``),
         ``cardinality_variance`` (``sum r (1 - r)``), ``cardinality_map``, ``n_tracks``,
         ``n_hypotheses`` (distinct drawn rows), ``n_estimates``, ``estimates`` ``(E, d)``,
         ``estimate_labels`` ``(E, 2)``, ``estimate_mask`` ``(E,)`` and ``n_measurements``.
@@ -504,6 +533,8 @@ def gm_lmb(
     ):
         if not 0 <= float(value) < 1:
             raise ValueError(f"{name}: must lie in [0, 1), got {value!r}")
+    if reducer is not None and not (hasattr(reducer, "init") and hasattr(reducer, "reduce")):
+        raise ValueError(f"reducer: expected None or a Reducer (init, reduce), got {type(reducer).__name__}")
     sizes = {}
     for name, value in (
         ("capacity", capacity),
@@ -528,6 +559,7 @@ def gm_lmb(
         measurement_noise=measurement_noise,
         existence_threshold=jnp.asarray(existence_threshold, dtype),
         component_threshold=jnp.asarray(component_threshold, dtype),
+        reducer=reducer,
     )
 
     def init(params: LMBParams, prior: GaussianMixture | None = None, *, key: PRNGKey | None = None):
