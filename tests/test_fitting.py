@@ -464,3 +464,28 @@ def test_bad_arguments_are_refused_naming_them(small_phd, short_jump):
     with pytest.raises(ValueError, match=r"^checkpoint_every"):
         gmjax.fit(kf, zs, fit="R", checkpoint_every=-1, **kw)
     assert not os.path.exists("fit.npz")
+
+
+@pytest.mark.parametrize("which", ["cphd", "lmb"])
+def test_clutter_rate_by_maximum_likelihood_is_the_grid_optimum_near_the_truth(which):
+    """``gmjax.fit`` with ``nll()`` on padded sets for the GM-CPHD (its exact i.i.d.-cluster likelihood)
+    and the GM-LMB (the likelihood of its drawn hypotheses, the same draws every step): the fitted
+    clutter rate is the minimiser of the same objective on a grid, and near the simulated rate."""
+    sc = mt.vo_ma_linear(n_steps=12, max_measurements=32, clutter_rate=10.0)
+    zs = jax.vmap(lambda k: mt.simulate(sc, k).zs)(jax.random.split(jax.random.key(5), 4))
+    if which == "cphd":
+        f = mt.gm_cphd(sc.model, **sc.filter_kwargs(), n_max=12, capacity=12)
+    else:
+        f = mt.gm_lmb(sc.model, **sc.filter_kwargs(), capacity=10, components_per_track=3, n_samples=60)
+    start = f.params._replace(clutter_rate=jnp.asarray(4.0))
+    key = jax.random.key(2)
+    res = gmjax.fit(f, zs, fitting.nll(), fit="clutter_rate", params=start, key=key, steps=40, progress=False)
+    assert res.converged and res.n_skipped == 0
+    view = fitting.param_view(start, ["clutter_rate"])
+    loss = jax.jit(fitting.loss_fn(f, zs, fitting.nll(), view))
+    grid = np.linspace(7.0, 13.0, 31)
+    at = lambda g: view.unconstrained(start._replace(clutter_rate=jnp.asarray(g)))  # noqa: E731
+    values = [float(loss(at(g), key)) for g in grid]
+    best = grid[int(np.argmin(values))]
+    assert abs(res.values["clutter_rate"] - best) <= grid[1] - grid[0]
+    assert abs(res.values["clutter_rate"] - 10.0) < 2.0

@@ -22,7 +22,9 @@ Results are returned in natural units.
 
 **Objectives.** :func:`nll` (the default with measurements): the negative log-likelihood per step,
 ``-(1 / (B T)) Σ_b Σ_t StepInfo.loglik``, of one ``(T, m)`` or a batch ``(B, T, m)`` of sequences, for
-every filter that reports ``loglik`` (KF/EKF/UKF/CKF, GSF, IMM, PF, ...). :func:`study` (the default with
+every filter that reports ``loglik`` (KF/EKF/UKF/CKF, GSF, IMM, PF, ...; the multi-target GM-PHD, GM-CPHD
+and GM-LMB on padded sets ``(B, T, M, m)``, the LMB with ``key``'s draws, the same every step).
+:func:`study` (the default with
 a scenario): any loss of :mod:`gmjax.montecarlo` (``armse_loss``, ``anees_loss``, ...) on ``n_runs``
 simulated runs, the same runs every step (common random numbers) unless ``resample``; for a GM-PHD
 filter on a :class:`~gmjax.multitarget.MultiTargetScenario`, a per-run loss of

@@ -176,8 +176,8 @@ def fit(
     is_study = isinstance(data, Scenario) or _is_multitarget_scenario(data)
     if _is_multitarget_scenario(data) != _is_multitarget(filter) and is_study:
         raise ValueError(
-            "data: a MultiTargetScenario goes with a GM-PHD filter (gmjax.multitarget.gm_phd) and a "
-            f"Scenario with a single-target filter; got {type(data).__name__} for this filter"
+            "data: a MultiTargetScenario goes with a GM-PHD filter (gmjax.multitarget.gm_phd; or gm_cphd, "
+            f"gm_lmb) and a Scenario with a single-target filter; got {type(data).__name__} for this filter"
         )
     if objective is None:
         objective = study() if is_study else nll()

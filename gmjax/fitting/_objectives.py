@@ -52,9 +52,12 @@ def _is_multitarget_scenario(data: Any) -> bool:
 
 
 def _is_multitarget(filter: Filter) -> bool:
+    """A GM-PHD, GM-CPHD or GM-LMB filter: its steps measure padded sets ``(M, m)``."""
+    from gmjax.multitarget.cphd import CPHDParams
+    from gmjax.multitarget.lmb import LMBParams
     from gmjax.multitarget.phd import PHDParams
 
-    return isinstance(filter.params, PHDParams)
+    return isinstance(filter.params, (PHDParams, CPHDParams, LMBParams))
 
 
 def _measurement_data(data: Any, filter: Filter) -> tuple[Array, Any]:
