@@ -51,7 +51,8 @@ def gibbs_sample(log_eta: Array, live: Array, uniforms: Array) -> Array:
     ``g - 1`` and draws, for ``i = 0 .. N - 1`` in turn, ``gamma_i`` from
     ``p(a) ∝ eta_i(a) [a <= 1 or no other track holds a]`` by inverting its cumulative sum with
     ``uniforms[g - 1, i]`` (the smallest ``a`` with ``cum_a > u cum_last``); a track with no possible
-    choice keeps its value.
+    choice keeps its value. Each sweep visits only the live tracks, in slot order, with their own
+    draws (an empty slot's only choice is ``0``), so its length is the number of live tracks.
 
     Args:
         log_eta: ``(N, A)`` the joint costs, ``A = M + 2``.
@@ -78,9 +79,14 @@ def gibbs_sample(log_eta: Array, live: Array, uniforms: Array) -> Array:
         new = jnp.where(possible, a, gamma[i])
         return gamma.at[i].set(new), counts.at[new].add(1), u
 
+    live_first = jnp.argsort(~live, stable=True).astype(jnp.int32)  # live slots first, in slot order
+    n_live = jnp.sum(live.astype(jnp.int32))
+
     def row(gamma_counts, u):
         gamma, counts = gamma_counts
-        gamma, counts, _ = jax.lax.fori_loop(0, N, track, (gamma, counts, u))
+        gamma, counts, _ = jax.lax.fori_loop(
+            0, n_live, lambda k, c: track(live_first[k], c), (gamma, counts, u)
+        )
         return (gamma, counts), gamma
 
     _, rows = jax.lax.scan(row, (start, counts0), uniforms)
@@ -119,8 +125,14 @@ def hypothesis_marginals(
     top_safe = jnp.where(feasible, top, 0.0)
     log_norm = jnp.where(feasible, top_safe + jnp.log(jnp.sum(jnp.exp(log_w - top_safe))), -jnp.inf)
     weights = jnp.where(feasible & distinct, jnp.exp(log_w - jnp.where(feasible, log_norm, 0.0)), 0.0)
-    onehot = jax.nn.one_hot(samples - 1, log_eta.shape[1] - 1, dtype=dtype)  # (G, N, M + 1); 0 -> none
-    beta = jnp.einsum("g,gna->na", weights, onehot)
+    G, N = samples.shape
+    column = jnp.where(samples >= 1, samples - 1, log_eta.shape[1])  # choice 0 (no track): dropped
+    tracks = jnp.broadcast_to(jnp.arange(N), (G, N))
+    beta = (
+        jnp.zeros((N, log_eta.shape[1] - 1), dtype)
+        .at[tracks, column]
+        .add(jnp.broadcast_to(weights[:, None], (G, N)), mode="drop")
+    )
     return weights, jnp.sum(beta, axis=1), beta, log_norm
 
 
