@@ -220,6 +220,15 @@ def _log(x):
         return float(np.log(x)) if x > 0 else NEG_INF
 
 
+def _track_likelihood(tracks, q, i, j):
+    """``sum_c w_ic q_icj`` over the live components of track ``i``, in component order."""
+    s = 0.0
+    for c in range(tracks.w.shape[1]):
+        if tracks.cmask[i, c]:
+            s += tracks.w[i, c] * q[i, c, j]
+    return s
+
+
 def log_eta_from_q(tracks, q, present, p_d, clutter_rate, clutter_density):
     """Step 2: the ``(N, M+2)`` joint costs ``log eta_i(a)`` from the detection likelihoods ``q``."""
     N, J, M = q.shape
@@ -235,11 +244,7 @@ def log_eta_from_q(tracks, q, present, p_d, clutter_rate, clutter_density):
         for j in range(M):
             if not present[j]:
                 continue
-            s = 0.0
-            for c in range(J):
-                if tracks.cmask[i, c]:
-                    s += tracks.w[i, c] * q[i, c, j]
-            out[i, 2 + j] = _log(r * p_d * s / kappa)
+            out[i, 2 + j] = _log(r * p_d * _track_likelihood(tracks, q, i, j) / kappa)
     return out
 
 
@@ -356,10 +361,7 @@ def _posterior_track(tracks, i, r_i, beta_i, m_upd, P_upd, q, present, n_compone
     for j in range(M):
         if not present[j]:
             continue
-        s = 0.0
-        for c in range(J):
-            if tracks.cmask[i, c]:
-                s += tracks.w[i, c] * q[i, c, j]
+        s = _track_likelihood(tracks, q, i, j)
         for c in range(J):
             if not tracks.cmask[i, c]:
                 continue

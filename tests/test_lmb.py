@@ -323,3 +323,15 @@ def test_a_reducer_per_track_merges_and_preserves_each_track_s_moments():
     plain, same = one_update(_filter(sc)).tracks, one_update(untouched).tracks
     for a, b in zip(jax.tree_util.tree_leaves(plain), jax.tree_util.tree_leaves(same)):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+
+
+def test_init_with_a_prior_makes_one_track_per_component():
+    sc = _scenario(n_steps=2)
+    f = _filter(sc)
+    prior = sc.birth._replace(weights=jnp.asarray([0.9, 0.4]))
+    state = f.init(f.params, prior)
+    np.testing.assert_array_equal(state.mask, np.arange(T) < 2)
+    np.testing.assert_allclose(state.existence[:2], [0.9, 0.4])
+    np.testing.assert_array_equal(state.labels[:2], [[0, 0], [0, 1]])
+    np.testing.assert_allclose(state.density.means[:2, 0], sc.birth.means)
+    assert np.all(np.asarray(state.density.mask).sum(1) == (np.arange(T) < 2))

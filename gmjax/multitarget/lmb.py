@@ -67,7 +67,7 @@ from gmjax.multitarget.hypotheses import (
     hypothesis_marginals,
     log_mixture_likelihood,
 )
-from gmjax.multitarget.phd import _check_model_and_birth, _check_prob, _model_noises
+from gmjax.multitarget.phd import _check_model_and_birth, _check_prob, _fit, _model_noises
 from gmjax.multitarget.scans import measurement_mask
 
 __all__ = [
@@ -570,7 +570,7 @@ def gm_lmb(
         tracks = empty_tracks(T, J, d, dt)
         if prior is None:
             return tracks
-        gm, _ = (gmm.pad(prior, T), None) if prior.capacity <= T else (gmm.top_k(prior, T), None)
+        gm, _ = _fit(prior, T)  # the T heaviest components, or padded to T slots
         first = (jnp.arange(J) == 0)[None, :] & gm.mask[:, None]
         density = GaussianMixture(
             jnp.where(first, 1.0, 0.0).astype(dt),
