@@ -6,7 +6,6 @@ Validation lives in :mod:`gmjax._validate`, the small-matrix algebra in :mod:`gm
 from __future__ import annotations
 
 import functools
-import inspect
 from typing import Any, Callable
 
 import jax
@@ -100,55 +99,49 @@ def select_unchanged(bad: jax.Array, gm: GaussianMixture, out: GaussianMixture, 
     return out, info
 
 
-def guard_nan(**safe: Any) -> Callable:
-    """Decorate a public reducer ``f(gm, ...) -> (out, info)`` (or ``(out, state, info)``) so a
-    *traced* NaN in any of the named arguments gives a defined, flagged result.
+def replace_nans(*pairs: tuple[Any, Any]) -> tuple[tuple[Any, ...], jax.Array | None]:
+    """Replace traced NaNs in a reducer's threshold arguments by valid stand-ins.
 
-    ``safe`` maps argument names to a valid stand-in. When any traced floating leaf of those
-    arguments is NaN, the reducer runs on the stand-ins (so no NaN reaches its arithmetic or its
-    gradients) and its result is replaced by the input unchanged (:func:`select_unchanged`), with
-    ``info.invalid_threshold`` set; a stateful reducer's new state is then a fresh one
-    (``state_init(capacity)``, passed as ``safe["state_init"]``). Concrete NaNs are left to the
-    reducer's eager validation (a ``ValueError``).
+    Each pair is ``(value, stand_in)``; ``value`` may be a pytree (e.g. ``lambda_range``). Every
+    *traced* floating leaf has its NaNs replaced by ``stand_in``, so no NaN reaches the reducer's
+    arithmetic or its gradients; concrete values are returned as given (a concrete NaN is left to the
+    reducer's eager validation, a ``ValueError``). Returns ``(values, bad)``: the cleaned values in
+    the order given and the traced flag "some value was NaN", or ``None`` when no value was traced
+    (then :func:`unchanged_if_nan` returns the reducer's result as it is).
     """
-    state_init = safe.pop("state_init", None)
+    bad = None
+    cleaned = []
+    for value, stand_in in pairs:
 
-    def deco(fn: Callable) -> Callable:
-        sig = inspect.signature(fn)
-        first = next(iter(sig.parameters))
+        def clean(x, stand_in=stand_in):
+            nonlocal bad
+            if not _traced_float(x):
+                return x
+            nan = jnp.any(jnp.isnan(x))
+            bad = nan if bad is None else bad | nan
+            return jnp.where(jnp.isnan(x), jnp.asarray(stand_in, x.dtype), x)
 
-        @functools.wraps(fn)
-        def wrapped(*args, **kwargs):
-            bound = sig.bind(*args, **kwargs)
-            bound.apply_defaults()
-            bad = None
-            for name, stand_in in safe.items():
-                value = bound.arguments.get(name)
-                leaves = jax.tree_util.tree_leaves(value)
-                if not any(_traced_float(x) for x in leaves):
-                    continue
+        cleaned.append(jax.tree_util.tree_map(clean, value))
+    return tuple(cleaned), bad
 
-                def clean(x, stand_in=stand_in):
-                    nonlocal bad
-                    if not _traced_float(x):
-                        return x
-                    nan = jnp.any(jnp.isnan(x))
-                    bad = nan if bad is None else bad | nan
-                    return jnp.where(jnp.isnan(x), jnp.asarray(stand_in, x.dtype), x)
 
-                bound.arguments[name] = jax.tree_util.tree_map(clean, value)
-            result = fn(*bound.args, **bound.kwargs)
-            if bad is None:
-                return result
-            gm = bound.arguments[first]
-            if len(result) == 3:
-                out, state, info = result
-                out, info = select_unchanged(bad, gm, out, info)
-                fresh = state_init(out.capacity)
-                state = jax.tree_util.tree_map(functools.partial(jnp.where, bad), fresh, state)
-                return out, state, info
-            return select_unchanged(bad, gm, *result)
+def unchanged_if_nan(
+    bad: jax.Array | None, gm: GaussianMixture, result: tuple, state_init: Callable | None = None
+) -> tuple:
+    """A reducer's ``result`` (``(out, info)`` or ``(out, state, info)``), replaced where ``bad`` by
+    the input ``gm`` unchanged (:func:`select_unchanged`, ``info.invalid_threshold`` set).
 
-        return wrapped
-
-    return deco
+    ``bad`` comes from :func:`replace_nans` (``None``: nothing was traced, ``result`` as it is). A
+    stateful reducer's new state is then a fresh one, ``state_init(out.capacity)``.
+    """
+    if bad is None:
+        return result
+    if len(result) == 3:
+        out, state, info = result
+        out, info = select_unchanged(bad, gm, out, info)
+        if state_init is None:
+            raise TypeError("unchanged_if_nan: a stateful reducer's result needs its state_init")
+        fresh = state_init(out.capacity)
+        state = jax.tree_util.tree_map(functools.partial(jnp.where, bad), fresh, state)
+        return out, state, info
+    return select_unchanged(bad, gm, *result)

@@ -130,7 +130,6 @@ def _cowa(gm, num_out, threshold, capacity):
     )
 
 
-@_util.guard_nan(threshold=float("inf"))
 def cowa(
     gm: GaussianMixture,
     num_out: int,
@@ -151,8 +150,9 @@ def cowa(
     Arguments as in :func:`williams` (``threshold`` is an ISE bound, may be traced).
     """
     del key
+    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
     num_out, thr, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _cowa(gm, num_out, thr, cap)
+    return _util.unchanged_if_nan(bad, gm, _cowa(gm, num_out, thr, cap))
 
 
 @pytree_dataclass

@@ -63,17 +63,6 @@ def init_state(capacity: int) -> GMRCMState:
     return GMRCMState(jnp.zeros((capacity,), jnp.int32))
 
 
-@_util.guard_nan(
-    alpha=0.3,
-    lam=1.5,
-    lambda_range=1.5,
-    temperature=0.25,
-    tol=1e-6,
-    range_scale=0.5,
-    weight_threshold=0.01,
-    large_factor=1.5,
-    state_init=init_state,
-)
 def gmrcm(
     gm: GaussianMixture,
     state: GMRCMState | None = None,
@@ -121,6 +110,18 @@ def gmrcm(
         ValueError: for a bad concrete mixture, state or option, naming the argument.
     """
     del key
+    (alpha, lam, lambda_range, temperature, tol, range_scale, weight_threshold, large_factor), bad = (
+        _util.replace_nans(
+            (alpha, 0.3),
+            (lam, 1.5),
+            (lambda_range, 1.5),
+            (temperature, 0.25),
+            (tol, 1e-6),
+            (range_scale, 0.5),
+            (weight_threshold, 0.01),
+            (large_factor, 1.5),
+        )
+    )
     _validate.validate_mixture(gm)
     validate_search_args(
         lam=lam,
@@ -155,9 +156,10 @@ def gmrcm(
         dims=dims,
         criterion=EISECriterion.seed003(),
     )
-    return _gmrcm_core(
+    out = _gmrcm_core(
         gm, state, lam, search, weight_threshold, large_factor, low_steps=low_steps, capacity=cap
     )
+    return _util.unchanged_if_nan(bad, gm, out, state_init=init_state)
 
 
 @partial(jax.jit, static_argnames=("low_steps", "capacity"))

@@ -131,16 +131,6 @@ def search_aux(res: SearchResult, n_ref: Array) -> dict[str, Array]:
     }
 
 
-@_util.guard_nan(
-    rho=0.9544,
-    alpha=1e-3,
-    lam=2.0,
-    lambda_range=2.0,
-    temperature=0.2,
-    tol=1e-6,
-    range_scale=0.5,
-    gate_temperature=0.0,
-)
 def pcm(
     gm: GaussianMixture,
     *,
@@ -206,6 +196,18 @@ def pcm(
         ValueError: for a bad concrete mixture or an invalid option, naming the argument.
     """
     del key
+    (rho, alpha, lam, lambda_range, temperature, tol, range_scale, gate_temperature), bad = (
+        _util.replace_nans(
+            (rho, 0.9544),
+            (alpha, 1e-3),
+            (lam, 2.0),
+            (lambda_range, 2.0),
+            (temperature, 0.2),
+            (tol, 1e-6),
+            (range_scale, 0.5),
+            (gate_temperature, 0.0),
+        )
+    )
     _validate.validate_mixture(gm)
     _validate.validate_range(rho, "rho", 0.0, 1.0)
     if merge not in ("ci", "moment"):
@@ -247,9 +249,10 @@ def pcm(
         criterion=EISECriterion.seed000(merge),
     )
     core = _pcm_core if mode == "hard" else partial(_soft_pcm_core, mode=mode)
-    return core(
+    out = core(
         gm, rho, lam, search, gate_temperature, max_components=max_components, prune=prune, capacity=cap
     )
+    return _util.unchanged_if_nan(bad, gm, out)
 
 
 @partial(jax.jit, static_argnames=("max_components", "prune", "capacity"))

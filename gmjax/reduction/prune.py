@@ -71,7 +71,6 @@ def _keep(gm: GaussianMixture, keep: jax.Array, capacity: int):
     )
 
 
-@_util.guard_nan(threshold=1e-5, temperature=0.0)
 def prune_threshold(
     gm: GaussianMixture,
     threshold: Any,
@@ -107,6 +106,7 @@ def prune_threshold(
         ``n_expected`` (``Σ_k g_k``, the expected number of survivors).
     """
     del key
+    (threshold, temperature), bad = _util.replace_nans((threshold, 1e-5), (temperature, 0.0))
     _validate.validate_mixture(gm)
     _validate.validate_nonneg(threshold, "threshold")
     validate_temperature(temperature)
@@ -114,9 +114,11 @@ def prune_threshold(
     cap = _validate.validate_capacity(capacity, gm)
     if mode != "hard":
         gates = threshold_gates(gm, threshold, temperature, mode=mode)
-        return gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))
-    threshold = jnp.asarray(threshold, gm.weights.dtype)
-    return _keep(gm, gm.mask & (gm.weights >= threshold), cap)
+        out = gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))
+    else:
+        threshold = jnp.asarray(threshold, gm.weights.dtype)
+        out = _keep(gm, gm.mask & (gm.weights >= threshold), cap)
+    return _util.unchanged_if_nan(bad, gm, out)
 
 
 def prune_top(
@@ -183,7 +185,6 @@ def censored_count(gm: GaussianMixture, rho: Any, max_components: int | None = N
     return N
 
 
-@_util.guard_nan(rho=0.9544, temperature=0.0)
 def prune_censored(
     gm: GaussianMixture,
     rho: Any = 0.9544,
@@ -225,6 +226,7 @@ def prune_censored(
         ``gates`` and ``n_expected`` (``Σ_k g_k``) in the relaxed modes.
     """
     del key
+    (rho, temperature), bad = _util.replace_nans((rho, 0.9544), (temperature, 0.0))
     _validate.validate_mixture(gm)
     _validate.validate_range(rho, "rho", 0.0, 1.0)
     validate_temperature(temperature)
@@ -234,9 +236,10 @@ def prune_censored(
     cap = _validate.validate_capacity(capacity, gm)
     if mode != "hard":
         gates = censored_gates(gm, rho, temperature, max_components=max_components, mode=mode)
-        return gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))
-    rho = jnp.asarray(rho, gm.weights.dtype)
-    return _prune_censored(gm, rho, max_components, cap)
+        out = gated_prune(gm, gates, cap, negligible_floor(temperature, mode, gm.weights.dtype))
+    else:
+        out = _prune_censored(gm, jnp.asarray(rho, gm.weights.dtype), max_components, cap)
+    return _util.unchanged_if_nan(bad, gm, out)
 
 
 @partial(jax.jit, static_argnames=("max_components", "cap"))

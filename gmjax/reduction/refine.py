@@ -90,7 +90,6 @@ def _refine(gm, target, n_steps, learning_rate, optimize_weights):
     return out, make_info(gm, out, labels, cost=best_v, aux={"initial_ise": v0, "trace": trace})
 
 
-@_util.guard_nan(learning_rate=1e-2)
 def ise_refine(
     gm: GaussianMixture,
     target: GaussianMixture,
@@ -116,6 +115,7 @@ def ise_refine(
         key: unused.
     """
     del key
+    (learning_rate,), bad = _util.replace_nans((learning_rate, 1e-2))
     _validate.validate_mixture(gm, "gm")
     _validate.validate_mixture(target, "target")
     if gm.dim != target.dim:
@@ -123,7 +123,7 @@ def ise_refine(
     n_steps = _validate.validate_count(n_steps, "n_steps", 0, 2**31 - 1)
     _validate.validate_nonneg(learning_rate, "learning_rate", allow_inf=False)
     lr = jnp.asarray(learning_rate, gm.weights.dtype)
-    return _refine(gm, target, n_steps, lr, bool(optimize_weights))
+    return _util.unchanged_if_nan(bad, gm, _refine(gm, target, n_steps, lr, bool(optimize_weights)))
 
 
 @pytree_dataclass

@@ -92,7 +92,6 @@ def _runnalls_core(gm, num_out, threshold, capacity):
     return finish(gm, s, n_steps, capacity)
 
 
-@_util.guard_nan(threshold=float("inf"))
 def runnalls(
     gm: GaussianMixture,
     num_out: int,
@@ -119,8 +118,9 @@ def runnalls(
         merge sequence.
     """
     del key
+    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
     num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _runnalls(gm, num_out, threshold, cap)
+    return _util.unchanged_if_nan(bad, gm, _runnalls(gm, num_out, threshold, cap))
 
 
 @pytree_dataclass

@@ -54,7 +54,6 @@ def _salmond_core(gm, num_out, threshold, capacity):
     return out, info
 
 
-@_util.guard_nan(threshold=float("inf"))
 def salmond(
     gm: GaussianMixture,
     num_out: int,
@@ -70,8 +69,9 @@ def salmond(
     smallest distance exceeds ``threshold``. Arguments as in :func:`runnalls`.
     """
     del key
+    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
     num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _salmond(gm, num_out, threshold, cap)
+    return _util.unchanged_if_nan(bad, gm, _salmond(gm, num_out, threshold, cap))
 
 
 @pytree_dataclass

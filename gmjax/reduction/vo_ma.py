@@ -79,7 +79,6 @@ def _vo_ma(gm, prune_threshold, merge_threshold, max_components, capacity):
     )
 
 
-@_util.guard_nan(prune_threshold=1e-5, merge_threshold=4.0)
 def vo_ma(
     gm: GaussianMixture,
     prune_threshold: Any = 1e-5,
@@ -107,6 +106,9 @@ def vo_ma(
         key: unused.
     """
     del key
+    (prune_threshold, merge_threshold), bad = _util.replace_nans(
+        (prune_threshold, 1e-5), (merge_threshold, 4.0)
+    )
     _validate.validate_mixture(gm)
     _validate.validate_nonneg(prune_threshold, "prune_threshold")
     _validate.validate_nonneg(merge_threshold, "merge_threshold")
@@ -114,7 +116,8 @@ def vo_ma(
         max_components = _validate.validate_count(max_components, "max_components", 1, gm.capacity)
     cap = _validate.validate_capacity(capacity, gm)
     dt = gm.weights.dtype
-    return _vo_ma(gm, jnp.asarray(prune_threshold, dt), jnp.asarray(merge_threshold, dt), max_components, cap)
+    out = _vo_ma(gm, jnp.asarray(prune_threshold, dt), jnp.asarray(merge_threshold, dt), max_components, cap)
+    return _util.unchanged_if_nan(bad, gm, out)
 
 
 def _safe_div(a, b):

@@ -53,7 +53,6 @@ def _west(gm, num_out, threshold, capacity, metric, enhanced):
     return finish(gm, s, n_steps, capacity)
 
 
-@_util.guard_nan(threshold=float("inf"))
 def west(
     gm: GaussianMixture,
     num_out: int,
@@ -74,10 +73,11 @@ def west(
     ``threshold``. Other arguments as in :func:`runnalls`.
     """
     del key
+    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
     if metric not in ("kl", "ise"):
         raise ValueError(f"metric: expected 'kl' or 'ise', got {metric!r}")
     num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _west(gm, num_out, threshold, cap, metric, bool(enhanced))
+    return _util.unchanged_if_nan(bad, gm, _west(gm, num_out, threshold, cap, metric, bool(enhanced)))
 
 
 @pytree_dataclass

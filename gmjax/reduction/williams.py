@@ -133,7 +133,6 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
     )
 
 
-@_util.guard_nan(threshold=float("inf"))
 def williams(
     gm: GaussianMixture,
     num_out: int,
@@ -164,8 +163,9 @@ def williams(
         ``(i, j)`` for a merge, ``(i, -1)`` for a deletion, ``(-2, -2)`` for no action.
     """
     del key
+    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
     num_out, thr, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _williams(gm, num_out, thr, bool(allow_prune), cap)
+    return _util.unchanged_if_nan(bad, gm, _williams(gm, num_out, thr, bool(allow_prune), cap))
 
 
 @pytree_dataclass
