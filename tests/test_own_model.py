@@ -102,15 +102,16 @@ def test_control_input_f_x_u_t_matches_numpy_kf_and_old_models_still_work():
     us = rng.normal(size=(T, 1))
     zs = rng.normal(size=(T, 1))
 
-    def f(x, u, t):  # three positional parameters: a control input
+    def f(x, u, t):  # a control input: call="u,t"
         return a * x + b * u
 
     model = StateSpaceModel(
         f=f,
-        h=lambda x, t: x,
+        h=lambda x, u, t: x,
         process_noise=gmm.from_gaussian(jnp.zeros(1), q * jnp.eye(1)),
         measurement_noise=gmm.from_gaussian(jnp.zeros(1), r * jnp.eye(1)),
         prior=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)),
+        call="u,t",
     )
     inputs = StepInputs(t=jnp.arange(1, T + 1), control=jnp.asarray(us))
     for build in (filters.build_kf, filters.build_ekf, filters.build_ckf):
@@ -141,6 +142,45 @@ def test_control_input_f_x_u_t_matches_numpy_kf_and_old_models_still_work():
     assert seen["type"] == "StepInputs"
     with pytest.raises(ValueError, match="call"):
         filters.build_kf(model._replace(call="x,y"))
+
+
+def test_call_convention_is_said_not_sniffed_and_a_wrong_arity_is_named():
+    """``call`` is given (default ``"t"``); a function called with the wrong arity raises a
+    ``TypeError`` that names the convention it was called by, at build time."""
+    noise = gmm.from_gaussian(jnp.zeros(1), jnp.eye(1))
+    model = StateSpaceModel(
+        f=lambda x, u, t: x + u,
+        h=lambda x, u, t: x,
+        process_noise=noise,
+        measurement_noise=noise,
+        prior=noise,
+    )
+    assert model.call == "t"
+    with pytest.raises(TypeError, match=r"model\.f: called as f\(x, t\) \(call='t'\).*call='u,t'"):
+        filters.build_ekf(model)
+    with pytest.raises(ValueError, match="call.*'auto'.*removed"):
+        filters.build_kf(model._replace(call="auto"))
+    filters.build_ekf(model._replace(call="u,t"))  # said: builds
+
+    # a process noise of the state says so; a three-parameter one called without the flag is named
+    def noise_at(q, inputs, x):
+        return q._replace(covs=q.covs * (1.0 + x[0] ** 2))
+
+    sd = StateSpaceModel(
+        f=lambda x, t: x,
+        h=lambda x, t: x,
+        process_noise=noise,
+        measurement_noise=noise,
+        prior=noise,
+        process_noise_at=noise_at,
+    )
+    zs, inputs = jnp.ones((3, 1)), StepInputs(t=jnp.arange(1, 4))
+    with pytest.raises(TypeError, match=r"process_noise_at\(noise, inputs\).*state_dependent_noise=True"):
+        filters.run(filters.build_ekf(sd), zs, inputs)
+    _, infos = filters.run(filters.build_ekf(sd._replace(state_dependent_noise=True)), zs, inputs)
+    assert np.all(np.isfinite(np.asarray(infos.mean)))
+    with pytest.raises(ValueError, match="state_dependent_noise: True needs a process_noise_at"):
+        filters.build_ekf(sd._replace(process_noise_at=None, state_dependent_noise=True))
 
 
 # --- angles across ±pi -------------------------------------------------------------------------

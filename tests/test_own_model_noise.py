@@ -350,7 +350,7 @@ def _sd_model(range_measurement: bool = True) -> StateSpaceModel:
     motion = lib.constant_velocity(1, Q_SD)
     scale = lib.noise_scaler(motion.Q, 1.0)
 
-    def noise_at(noise, inputs, x):  # three parameters: the noise depends on the state
+    def noise_at(noise, inputs, x):  # the noise depends on the state: state_dependent_noise=True
         q = scale(noise, inputs.dt)
         return q._replace(covs=q.covs * _speed_scale(x))
 
@@ -365,6 +365,7 @@ def _sd_model(range_measurement: bool = True) -> StateSpaceModel:
         prior=gmm.from_gaussian(jnp.array([-5.0, 1.0]), jnp.diag(jnp.array([4.0, 1.0]))),
         process_noise_at=noise_at,
         call="inputs",
+        state_dependent_noise=True,
     )
 
 
@@ -420,7 +421,8 @@ def test_state_dependent_noise_ekf_and_rts_match_a_numpy_loop():
     const = model._replace(
         process_noise_at=lambda noise, inputs: lib.noise_scaler(lib.constant_velocity(1, Q_SD).Q, 1.0)(
             noise, inputs.dt
-        )
+        ),
+        state_dependent_noise=False,
     )
     other = filters.run(filters.build_ekf(const), jnp.asarray(zs), inputs)[1].mean
     assert np.abs(np.asarray(other) - m).max() > 1e-2
@@ -450,6 +452,7 @@ def _rw_model():
         measurement_noise=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)),
         prior=gmm.from_gaussian(jnp.zeros(1), jnp.eye(1)),
         process_noise_at=lambda noise, inputs, x: noise._replace(covs=noise.covs * (0.1 + x[0] ** 2)),
+        state_dependent_noise=True,
     )
 
 

@@ -206,7 +206,11 @@ def check_model(model: StateSpaceModel) -> tuple[int, int]:
     if not isinstance(model, StateSpaceModel):
         raise ValueError(f"model: expected a StateSpaceModel, got {type(model).__name__}")
     for name in ("f", "h"):
-        call_convention(getattr(model, name), model.call, name)  # resolves once; raises on a bad `call`
+        call_convention(getattr(model, name), model.call, name)  # raises on a bad `call`
+    if not isinstance(model.state_dependent_noise, bool):
+        raise ValueError(f"model.state_dependent_noise: expected a bool, got {model.state_dependent_noise!r}")
+    if model.state_dependent_noise and model.process_noise_at is None:
+        raise ValueError("model.state_dependent_noise: True needs a process_noise_at(noise, inputs, x)")
     for name in ("process_noise", "measurement_noise", "prior"):
         gm = getattr(model, name)
         if not isinstance(gm, GaussianMixture):

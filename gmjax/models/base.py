@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 from functools import partial
 from typing import Any, Callable, NamedTuple, overload
 
@@ -25,56 +24,44 @@ __all__ = [
     "CALL_CONVENTIONS",
     "inputs_from_times",
     "scenario_from_model",
-    "noise_takes_state",
 ]
 
 CALL_CONVENTIONS = ("t", "u,t", "inputs")
 
 
-def call_convention(fn: Callable, call: str = "auto", name: str = "f") -> str:
-    """How a model function is called: ``"t"`` (``fn(x, t)``), ``"u,t"`` (``fn(x, u, t)`` with the
-    control ``u``) or ``"inputs"`` (``fn(x, inputs)`` with the whole
-    :class:`~gmjax.filters.StepInputs`: ``t``, ``dt``, ``control``, ``aux``).
+def call_convention(fn: Callable, call: str = "t", name: str = "f") -> str:
+    """How a model function is called, as the model's ``call`` says: ``"t"`` (``fn(x, t)``),
+    ``"u,t"`` (``fn(x, u, t)`` with the control ``u``) or ``"inputs"`` (``fn(x, inputs)`` with the
+    whole :class:`~gmjax.filters.StepInputs`: ``t``, ``dt``, ``control``, ``aux``).
 
-    ``call="auto"`` reads the arity once (when the model is checked, never inside ``jit``): three
-    positional parameters mean ``"u,t"``, anything else ``"t"``.
+    The convention is always given, never read from ``fn``'s signature; ``fn`` and ``name`` only
+    name the function in the error.
 
     Raises:
-        ValueError: an unknown ``call``.
+        ValueError: an unknown ``call`` (``"auto"``, the arity sniffing of gmjax 0.2, included).
     """
-    if call != "auto":
-        if call not in CALL_CONVENTIONS:
-            raise ValueError(f"call: expected 'auto' or one of {CALL_CONVENTIONS}, got {call!r}")
+    if call in CALL_CONVENTIONS:
         return call
-    try:
-        params = inspect.signature(fn).parameters.values()
-    except (TypeError, ValueError):
-        return "t"
-    kinds = [p.kind for p in params]
-    if inspect.Parameter.VAR_POSITIONAL in kinds:
-        return "t"
-    n_pos = sum(
-        k in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD) for k in kinds
+    hint = (
+        " ('auto', reading the arity, was removed: say how the functions are called)"
+        if call == "auto"
+        else ""
     )
-    return "u,t" if n_pos == 3 else "t"
+    raise ValueError(
+        f"call: expected one of {CALL_CONVENTIONS} for {name} ({getattr(fn, '__name__', fn)!r}), "
+        f"got {call!r}{hint}: 't' for {name}(x, t), 'u,t' for {name}(x, u, t) with a control, "
+        f"'inputs' for {name}(x, inputs)"
+    )
 
 
-def noise_takes_state(fn: Callable | None) -> bool:
-    """Whether a ``process_noise_at`` depends on the state: ``fn(noise, inputs, x)`` (three
-    positional parameters) rather than ``fn(noise, inputs)``. Read once, by arity, outside ``jit``."""
-    if fn is None:
-        return False
-    try:
-        params = inspect.signature(fn).parameters.values()
-    except (TypeError, ValueError):
-        return False
-    kinds = [p.kind for p in params]
-    if inspect.Parameter.VAR_POSITIONAL in kinds:
-        return False
-    n_pos = sum(
-        k in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD) for k in kinds
+def _call_hint(name: str, conv: str, error: TypeError) -> TypeError:
+    """A ``TypeError`` from calling a model function, with the convention it was called by."""
+    form = {"t": "(x, t)", "u,t": "(x, u, t)", "inputs": "(x, inputs)"}[conv]
+    return TypeError(
+        f"model.{name}: called as {name}{form} (call={conv!r}) and failed: {error}. A function with "
+        "a control takes (x, u, t) and needs call='u,t'; one of the whole step inputs takes "
+        "(x, inputs) and needs call='inputs'"
     )
-    return n_pos == 3
 
 
 _STATE_NOISE_SUPPORT = (
@@ -82,6 +69,19 @@ _STATE_NOISE_SUPPORT = (
     "the IMM (at each mode's mixed mean), the particle filter (per particle), rts_smoother and "
     "simulate / scenario_from_model"
 )
+
+
+def _call_noise(fn: Callable, noise: GaussianMixture, *args) -> GaussianMixture:
+    """``fn(noise, inputs)`` or ``fn(noise, inputs, x)``, a wrong arity named in the error."""
+    try:
+        return fn(noise, *args)
+    except TypeError as e:
+        form, flag = ("(noise, inputs, x)", "True") if len(args) == 2 else ("(noise, inputs)", "False")
+        raise TypeError(
+            f"model.process_noise_at: called as process_noise_at{form} (state_dependent_noise="
+            f"{flag}) and failed: {e}. A noise of the state takes (noise, inputs, x) and needs "
+            "state_dependent_noise=True"
+        ) from e
 
 
 def _is_step_inputs(s: Any) -> bool:
@@ -101,32 +101,32 @@ def as_step_fn(fn: None, call: str = ..., name: str = ...) -> None: ...
 def as_step_fn(fn: Callable | None, call: str = ..., name: str = ...) -> Callable | None: ...
 
 
-def as_step_fn(fn: Callable | None, call: str = "auto", name: str = "f") -> Callable | None:
+def as_step_fn(fn: Callable | None, call: str = "t", name: str = "f") -> Callable | None:
     """``fn`` as ``g(x, s)`` where ``s`` is a :class:`~gmjax.filters.StepInputs` (or, for code that
-    still passes a bare time, the time ``t``), whatever ``fn``'s :func:`call_convention`.
+    still passes a bare time, the time ``t``), called by the convention ``call`` (``"t"``, ``"u,t"``
+    or ``"inputs"``, :func:`call_convention`).
 
-    The convention is resolved here, once; the returned function only dispatches on the Python type
-    of ``s`` (at trace time). Wrapping twice is harmless.
+    The returned function only dispatches on the Python type of ``s`` (at trace time); a
+    ``TypeError`` from ``fn`` (e.g. a wrong arity for ``call``) is raised again with the convention
+    it was called by. Wrapping twice is harmless.
     """
     if fn is None or getattr(fn, "_gmjax_step_fn", False):
         return fn
     conv = call_convention(fn, call, name)
 
-    if conv == "t":
+    def arguments(s):
+        if conv == "t":
+            return (s.t if _is_step_inputs(s) else s,)
+        if conv == "u,t":
+            return (s.control, s.t) if _is_step_inputs(s) else (None, s)
+        return (s if _is_step_inputs(s) else StepInputs(t=s),)
 
-        def g(x, s):
-            return fn(x, s.t if _is_step_inputs(s) else s)
-    elif conv == "u,t":
-
-        def g(x, s):
-            return fn(x, s.control, s.t) if _is_step_inputs(s) else fn(x, None, s)
-    else:
-
-        def g(x, s):
-            if _is_step_inputs(s):
-                return fn(x, s)
-
-            return fn(x, StepInputs(t=s))
+    def g(x, s):
+        args = arguments(s)
+        try:
+            return fn(x, *args)
+        except TypeError as e:
+            raise _call_hint(name, conv, e) from e
 
     g._gmjax_step_fn = True  # type: ignore[attr-defined]
     g.__wrapped_model_fn__ = fn  # type: ignore[attr-defined]
@@ -176,7 +176,7 @@ class StateSpaceModel(NamedTuple):
 
     Attributes:
         f: the transition, ``f(x (d,), t) -> (d,)``; or ``f(x, u, t)`` with a control input ``u``
-            (``inputs.control``); or ``f(x, inputs)`` with the whole
+            (``inputs.control``, ``call="u,t"``); or ``f(x, inputs)`` with the whole
             :class:`~gmjax.filters.StepInputs` (``call="inputs"``; e.g. to use ``inputs.dt``).
         h: the measurement function, same conventions (``h(x, t)``, ``h(x, u, t)``, ``h(x, inputs)``).
         process_noise: GM of ``v`` (dim ``d``); a single Gaussian is a 1-component mixture.
@@ -189,12 +189,13 @@ class StateSpaceModel(NamedTuple):
         process_noise_at: optional ``(noise: GaussianMixture, inputs) -> GaussianMixture``, the
             step's process noise from the one in ``params`` (e.g. ``Q(dt)``; see
             :func:`gmjax.models.library.noise_scaler`). ``None``: the same noise every step.
-            With a third positional parameter, ``(noise, inputs, x) -> GaussianMixture``, the
-            noise also depends on the state ``x (d,)`` at the *start* of the step
-            (``v_k ~ p(v | x_{k-1}, dt)``, state-dependent process noise; see :meth:`noise_at`
-            for where each filter evaluates it).
-        call: ``"auto"`` (by arity: 3 positional parameters mean ``(x, u, t)``, else ``(x, t)``),
-            ``"t"``, ``"u,t"`` or ``"inputs"``; read once when a filter is built.
+            With ``state_dependent_noise=True`` it is ``(noise, inputs, x) -> GaussianMixture``:
+            the noise also depends on the state ``x (d,)`` at the *start* of the step
+            (``v_k ~ p(v | x_{k-1}, dt)``; see :meth:`noise_at` for where each filter evaluates it).
+        call: how ``f``, ``h`` and their Jacobians are called: ``"t"`` (default, ``f(x, t)``),
+            ``"u,t"`` (``f(x, u, t)``) or ``"inputs"`` (``f(x, inputs)``); checked when a filter
+            is built, never read from the functions' signatures.
+        state_dependent_noise: ``process_noise_at`` takes the state, ``(noise, inputs, x)``.
     """
 
     f: Callable[[Array, Array], Array]
@@ -206,7 +207,8 @@ class StateSpaceModel(NamedTuple):
     h_jacobian: Callable[[Array, Array], Array] | None = None
     angle_dims: tuple[int, ...] = ()
     process_noise_at: Callable[..., GaussianMixture] | None = None
-    call: str = "auto"
+    call: str = "t"
+    state_dependent_noise: bool = False
 
     def step_fns(self) -> tuple[Callable, Callable, Callable | None, Callable | None]:
         """``(f, h, f_jacobian, h_jacobian)`` as ``g(x, inputs)`` (see :func:`as_step_fn`)."""
@@ -216,11 +218,6 @@ class StateSpaceModel(NamedTuple):
             as_step_fn(self.f_jacobian, self.call, "f_jacobian"),
             as_step_fn(self.h_jacobian, self.call, "h_jacobian"),
         )
-
-    @property
-    def state_dependent_noise(self) -> bool:
-        """``process_noise_at`` takes the state: ``(noise, inputs, x)`` (:func:`noise_takes_state`)."""
-        return noise_takes_state(self.process_noise_at)
 
     def noise_at(self, noise: GaussianMixture, inputs: Any, x: Array | None = None) -> GaussianMixture:
         """The step's process noise: ``process_noise_at(noise, inputs)``, or ``noise`` unchanged.
@@ -249,10 +246,10 @@ class StateSpaceModel(NamedTuple):
                 )
             if not _is_step_inputs(inputs):
                 inputs = StepInputs(t=inputs)
-            return self.process_noise_at(noise, inputs, x)
+            return _call_noise(self.process_noise_at, noise, inputs, x)
         if not _is_step_inputs(inputs):
             return noise
-        return self.process_noise_at(noise, inputs)
+        return _call_noise(self.process_noise_at, noise, inputs)
 
     @property
     def params(self) -> ModelParams:
