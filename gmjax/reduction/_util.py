@@ -11,7 +11,7 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
-from gmjax import mixture
+from gmjax import _validate, mixture
 from gmjax.mixture import GaussianMixture
 
 # ----------------------------------------------------------------------------- finalisation
@@ -123,6 +123,19 @@ def replace_nans(*pairs: tuple[Any, Any]) -> tuple[tuple[Any, ...], jax.Array | 
 
         cleaned.append(jax.tree_util.tree_map(clean, value))
     return tuple(cleaned), bad
+
+
+def reduce_count_threshold(
+    core: Callable, gm: GaussianMixture, num_out: Any, threshold: Any, capacity: Any, **static: Any
+) -> tuple:
+    """The public body of a greedy reducer that merges down to ``num_out`` components or until its
+    cost exceeds ``threshold`` (Runnalls, Salmond, West, Williams, COWA): a traced NaN threshold
+    replaced and flagged (:func:`replace_nans`), the arguments validated
+    (:func:`gmjax._validate.validate_count_threshold`), then
+    ``core(gm, num_out, threshold, capacity=capacity, **static)``."""
+    (threshold,), bad = replace_nans((threshold, float("inf")))
+    num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
+    return unchanged_if_nan(bad, gm, core(gm, num_out, threshold, capacity=cap, **static))
 
 
 def unchanged_if_nan(

@@ -7,10 +7,11 @@ from typing import Any, Callable, NamedTuple, Protocol
 
 import jax.numpy as jnp
 
+from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, PRNGKey
 from gmjax.mixture import GaussianMixture
 
-__all__ = ["ReductionInfo", "Reducer", "EmptyState", "Stateless", "calls", "make_info"]
+__all__ = ["ReductionInfo", "Reducer", "EmptyState", "Stateless", "CountThreshold", "calls", "make_info"]
 
 
 class ReductionInfo(NamedTuple):
@@ -135,3 +136,21 @@ class Stateless:
         """``(reduced, state, info)``; the state passes through unchanged."""
         out, info = self(gm, key=key)  # type: ignore[operator]
         return out, state, info
+
+
+@pytree_dataclass
+class CountThreshold(Stateless):
+    """The fields of a greedy reducer config that merges down to ``num_out`` components or until the
+    cheapest merge costs more than ``threshold`` (:class:`~gmjax.reduction.Runnalls`,
+    :class:`~gmjax.reduction.Salmond`, :class:`~gmjax.reduction.COWA`); a subclass adds its
+    ``__call__ = calls(fn)``.
+
+    Attributes:
+        num_out: static target count.
+        threshold: the cost bound (traced; default ``inf``, count only).
+        capacity: static output capacity (default the input's).
+    """
+
+    num_out: int = static_field(10)
+    threshold: Any = float("inf")
+    capacity: int | None = static_field(None)

@@ -9,14 +9,14 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate, gaussian
-from gmjax._pytree import pytree_dataclass, static_field
+from gmjax import gaussian
+from gmjax._pytree import pytree_dataclass
 from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
+from gmjax.reduction.base import CountThreshold, ReductionInfo, calls, make_info
 from gmjax.reduction.west import west_distance
 
 __all__ = ["cowa", "optimal_weights", "COWA"]
@@ -150,17 +150,12 @@ def cowa(
     Arguments as in :func:`williams` (``threshold`` is an ISE bound, may be traced).
     """
     del key
-    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
-    num_out, thr, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _util.unchanged_if_nan(bad, gm, _cowa(gm, num_out, thr, cap))
+    return _util.reduce_count_threshold(_cowa, gm, num_out, threshold, capacity)
 
 
 @pytree_dataclass
-class COWA(Stateless):
-    """Reducer config for :func:`cowa` (``threshold`` dynamic)."""
-
-    num_out: int = static_field(10)
-    threshold: Any = float("inf")
-    capacity: int | None = static_field(None)
+class COWA(CountThreshold):
+    """Reducer config for :func:`cowa`: ``num_out``, ``threshold`` (dynamic), ``capacity``
+    (:class:`~gmjax.reduction.base.CountThreshold`)."""
 
     __call__ = calls(cowa)

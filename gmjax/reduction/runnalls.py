@@ -13,8 +13,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate, gaussian
-from gmjax._pytree import pytree_dataclass, static_field
+from gmjax import gaussian
+from gmjax._pytree import pytree_dataclass
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
@@ -26,7 +26,7 @@ from gmjax.reduction._greedy import (
     sequential,
     upper_argmin,
 )
-from gmjax.reduction.base import ReductionInfo, Stateless, calls
+from gmjax.reduction.base import CountThreshold, ReductionInfo, calls
 
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]
 
@@ -118,17 +118,12 @@ def runnalls(
         merge sequence.
     """
     del key
-    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
-    num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _util.unchanged_if_nan(bad, gm, _runnalls(gm, num_out, threshold, cap))
+    return _util.reduce_count_threshold(_runnalls, gm, num_out, threshold, capacity)
 
 
 @pytree_dataclass
-class Runnalls(Stateless):
-    """Reducer config for :func:`runnalls` (``threshold`` dynamic)."""
-
-    num_out: int = static_field(10)
-    threshold: Any = float("inf")
-    capacity: int | None = static_field(None)
+class Runnalls(CountThreshold):
+    """Reducer config for :func:`runnalls`: ``num_out``, ``threshold`` (dynamic), ``capacity``
+    (:class:`~gmjax.reduction.base.CountThreshold`)."""
 
     __call__ = calls(runnalls)

@@ -8,13 +8,13 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate, gaussian
-from gmjax._pytree import pytree_dataclass, static_field
+from gmjax import gaussian
+from gmjax._pytree import pytree_dataclass
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, moments
 from gmjax.reduction import _util
 from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, sequential, upper_argmin
-from gmjax.reduction.base import ReductionInfo, Stateless, calls
+from gmjax.reduction.base import CountThreshold, ReductionInfo, calls
 
 __all__ = ["salmond", "salmond_cost", "Salmond"]
 
@@ -69,17 +69,12 @@ def salmond(
     smallest distance exceeds ``threshold``. Arguments as in :func:`runnalls`.
     """
     del key
-    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
-    num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _util.unchanged_if_nan(bad, gm, _salmond(gm, num_out, threshold, cap))
+    return _util.reduce_count_threshold(_salmond, gm, num_out, threshold, capacity)
 
 
 @pytree_dataclass
-class Salmond(Stateless):
-    """Reducer config for :func:`salmond` (``threshold`` dynamic)."""
-
-    num_out: int = static_field(10)
-    threshold: Any = float("inf")
-    capacity: int | None = static_field(None)
+class Salmond(CountThreshold):
+    """Reducer config for :func:`salmond`: ``num_out``, ``threshold`` (dynamic), ``capacity``
+    (:class:`~gmjax.reduction.base.CountThreshold`)."""
 
     __call__ = calls(salmond)

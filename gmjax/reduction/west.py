@@ -9,7 +9,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate, gaussian
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
@@ -73,11 +73,11 @@ def west(
     ``threshold``. Other arguments as in :func:`runnalls`.
     """
     del key
-    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
     if metric not in ("kl", "ise"):
         raise ValueError(f"metric: expected 'kl' or 'ise', got {metric!r}")
-    num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _util.unchanged_if_nan(bad, gm, _west(gm, num_out, threshold, cap, metric, bool(enhanced)))
+    return _util.reduce_count_threshold(
+        _west, gm, num_out, threshold, capacity, metric=metric, enhanced=bool(enhanced)
+    )
 
 
 @pytree_dataclass

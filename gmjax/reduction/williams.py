@@ -9,7 +9,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gmjax import _validate, gaussian
+from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
@@ -163,9 +163,9 @@ def williams(
         ``(i, j)`` for a merge, ``(i, -1)`` for a deletion, ``(-2, -2)`` for no action.
     """
     del key
-    (threshold,), bad = _util.replace_nans((threshold, float("inf")))
-    num_out, thr, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
-    return _util.unchanged_if_nan(bad, gm, _williams(gm, num_out, thr, bool(allow_prune), cap))
+    return _util.reduce_count_threshold(
+        _williams, gm, num_out, threshold, capacity, allow_prune=bool(allow_prune)
+    )
 
 
 @pytree_dataclass
