@@ -138,6 +138,12 @@ def reduce_count_threshold(
     return unchanged_if_nan(bad, gm, core(gm, num_out, threshold, capacity=cap, **static))
 
 
+def either(*flags: jax.Array | None) -> jax.Array | None:
+    """The OR of :func:`replace_nans` flags (``None``: nothing traced)."""
+    present = [f for f in flags if f is not None]
+    return functools.reduce(jnp.logical_or, present) if present else None
+
+
 def unchanged_if_nan(
     bad: jax.Array | None, gm: GaussianMixture, result: tuple, state_init: Callable | None = None
 ) -> tuple:

@@ -40,9 +40,9 @@ from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, make_info
-from gmjax.reduction.eise import ConfidenceSearch, EISECriterion
+from gmjax.reduction.eise import EISECriterion
 from gmjax.reduction.merge import merge_labels
-from gmjax.reduction.pcm import search_aux, validate_search_args
+from gmjax.reduction.pcm import checked_search, search_aux
 
 __all__ = ["GMRCMState", "gmrcm", "GMRCM", "init_state"]
 
@@ -110,21 +110,12 @@ def gmrcm(
         ValueError: for a bad concrete mixture, state or option, naming the argument.
     """
     del key
-    (alpha, lam, lambda_range, temperature, tol, range_scale, weight_threshold, large_factor), bad = (
-        _util.replace_nans(
-            (alpha, 0.3),
-            (lam, 1.5),
-            (lambda_range, 1.5),
-            (temperature, 0.25),
-            (tol, 1e-6),
-            (range_scale, 0.5),
-            (weight_threshold, 0.01),
-            (large_factor, 1.5),
-        )
-    )
+    (weight_threshold, large_factor), bad = _util.replace_nans((weight_threshold, 0.01), (large_factor, 1.5))
     _validate.validate_mixture(gm)
-    validate_search_args(
-        lam=lam,
+    search, lam, bad_search = checked_search(
+        gm,
+        lam,
+        EISECriterion.seed003(),
         lambda_range=lambda_range,
         alpha=alpha,
         temperature=temperature,
@@ -133,7 +124,6 @@ def gmrcm(
         grid_size=grid_size,
         newton_steps=newton_steps,
         dims=dims,
-        dim=gm.dim,
     )
     _validate.validate_nonneg(weight_threshold, "weight_threshold")
     _validate.validate_nonneg(large_factor, "large_factor")
@@ -144,22 +134,10 @@ def gmrcm(
         state = init_state(K)
     if not isinstance(state, GMRCMState) or jnp.shape(state.low_count) != (K,):
         raise ValueError(f"state: expected a GMRCMState with low_count of shape ({K},)")
-    dims = None if dims is None else tuple(int(i) for i in dims)
-    search = ConfidenceSearch(
-        lambda_range=tuple(lambda_range),
-        alpha=alpha,
-        temperature=temperature,
-        tol=tol,
-        range_scale=range_scale,
-        grid_size=grid_size,
-        newton_steps=newton_steps,
-        dims=dims,
-        criterion=EISECriterion.seed003(),
-    )
     out = _gmrcm_core(
         gm, state, lam, search, weight_threshold, large_factor, low_steps=low_steps, capacity=cap
     )
-    return _util.unchanged_if_nan(bad, gm, out, state_init=init_state)
+    return _util.unchanged_if_nan(_util.either(bad, bad_search), gm, out, state_init=init_state)
 
 
 @partial(jax.jit, static_argnames=("low_steps", "capacity"))

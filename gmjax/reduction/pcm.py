@@ -66,7 +66,7 @@ from gmjax.reduction.relax import (
     validate_temperature,
 )
 
-__all__ = ["pcm", "PCM", "search_aux", "validate_search_args"]
+__all__ = ["pcm", "PCM", "search_aux", "validate_search_args", "checked_search"]
 
 
 def validate_search_args(
@@ -113,6 +113,60 @@ def validate_search_args(
             raise ValueError(f"dims: expected distinct state indices in [0, {dim}), got {dims!r}")
         if len(set(dims)) != len(dims):
             raise ValueError(f"dims: indices must be distinct, got {dims!r}")
+
+
+def checked_search(
+    gm: GaussianMixture,
+    lam: Any,
+    criterion: EISECriterion,
+    *,
+    lambda_range: Sequence[Any],
+    alpha: Any,
+    temperature: Any,
+    tol: Any,
+    range_scale: Any,
+    grid_size: int,
+    newton_steps: int,
+    dims: Sequence[int] | None,
+    allow_zero_temperature: bool = False,
+) -> tuple[ConfidenceSearch, Any, Array | None]:
+    """The confidence search of :func:`pcm` and ``gmrcm`` from their arguments: traced NaNs replaced
+    (:func:`gmjax.reduction._util.replace_nans`; the stand-ins are :class:`ConfidenceSearch`'s
+    defaults and ``lam = 2``), the concrete values checked (:func:`validate_search_args`), the frozen
+    :class:`ConfidenceSearch` built.
+
+    Returns:
+        ``(search, lam, bad)``: ``bad`` is the traced "some argument was NaN" (``None`` when none
+        was traced), for :func:`gmjax.reduction._util.unchanged_if_nan`.
+    """
+    (lam, lambda_range, alpha, temperature, tol, range_scale), bad = _util.replace_nans(
+        (lam, 2.0), (lambda_range, 2.0), (alpha, 1e-3), (temperature, 0.2), (tol, 1e-6), (range_scale, 0.5)
+    )
+    validate_search_args(
+        lam=lam,
+        lambda_range=lambda_range,
+        alpha=alpha,
+        temperature=temperature,
+        tol=tol,
+        range_scale=range_scale,
+        grid_size=grid_size,
+        newton_steps=newton_steps,
+        dims=dims,
+        dim=gm.dim,
+        allow_zero_temperature=allow_zero_temperature,
+    )
+    search = ConfidenceSearch(
+        lambda_range=tuple(lambda_range),
+        alpha=alpha,
+        temperature=temperature,
+        tol=tol,
+        range_scale=range_scale,
+        grid_size=grid_size,
+        newton_steps=newton_steps,
+        dims=None if dims is None else tuple(int(i) for i in dims),
+        criterion=criterion,
+    )
+    return search, lam, bad
 
 
 def search_aux(res: SearchResult, n_ref: Array) -> dict[str, Array]:
@@ -196,18 +250,7 @@ def pcm(
         ValueError: for a bad concrete mixture or an invalid option, naming the argument.
     """
     del key
-    (rho, alpha, lam, lambda_range, temperature, tol, range_scale, gate_temperature), bad = (
-        _util.replace_nans(
-            (rho, 0.9544),
-            (alpha, 1e-3),
-            (lam, 2.0),
-            (lambda_range, 2.0),
-            (temperature, 0.2),
-            (tol, 1e-6),
-            (range_scale, 0.5),
-            (gate_temperature, 0.0),
-        )
-    )
+    (rho, gate_temperature), bad = _util.replace_nans((rho, 0.9544), (gate_temperature, 0.0))
     _validate.validate_mixture(gm)
     _validate.validate_range(rho, "rho", 0.0, 1.0)
     if merge not in ("ci", "moment"):
@@ -219,8 +262,10 @@ def pcm(
             "piecewise-constant EISE, with no useful gradient); set lam=..."
         )
     validate_temperature(gate_temperature, "gate_temperature")
-    validate_search_args(
-        lam=lam,
+    search, lam, bad_search = checked_search(
+        gm,
+        lam,
+        EISECriterion.seed000(merge),
         lambda_range=lambda_range,
         alpha=alpha,
         temperature=temperature,
@@ -229,30 +274,16 @@ def pcm(
         grid_size=grid_size,
         newton_steps=newton_steps,
         dims=dims,
-        dim=gm.dim,
         allow_zero_temperature=mode != "hard",
     )
     if max_components is not None:
         max_components = _validate.validate_count(max_components, "max_components", 1, 2**31 - 1)
     cap = _validate.validate_capacity(capacity, gm)
-    dims = None if dims is None else tuple(dims)
-
-    search = ConfidenceSearch(
-        lambda_range=tuple(lambda_range),
-        alpha=alpha,
-        temperature=temperature,
-        tol=tol,
-        range_scale=range_scale,
-        grid_size=grid_size,
-        newton_steps=newton_steps,
-        dims=dims,
-        criterion=EISECriterion.seed000(merge),
-    )
     core = _pcm_core if mode == "hard" else partial(_soft_pcm_core, mode=mode)
     out = core(
         gm, rho, lam, search, gate_temperature, max_components=max_components, prune=prune, capacity=cap
     )
-    return _util.unchanged_if_nan(bad, gm, out)
+    return _util.unchanged_if_nan(_util.either(bad, bad_search), gm, out)
 
 
 @partial(jax.jit, static_argnames=("max_components", "prune", "capacity"))
