@@ -16,9 +16,10 @@ all from :mod:`gmjax.montecarlo` and re-exported here) and updates of unconstrai
 into each parameter's valid range (:class:`Bounds`). :func:`study_scores` / :func:`study_loss` also take
 a ``params`` pytree that replaces ``filter.params``; :func:`plot_history` plots a run.
 
-:func:`gmjax.fit` (:mod:`gmjax.fitting`) is the general form: any leaf of ``filter.params`` (a relaxed
-reducer's thresholds are leaves: ``fit="reducer.rho"``), maximum likelihood or a study loss, constraints,
-convergence and resumable checkpoints. :func:`tune` keeps the filter-factory interface of version 0.1.
+:func:`tune` names the tuned thresholds as leaves of ``filter.params`` (``{"reducer.rho": 0.95}``), as
+:func:`gmjax.fit` (:mod:`gmjax.fitting`) does, the general form: any leaf (arrays too), maximum
+likelihood or a study loss, constraints, convergence and resumable checkpoints. A factory
+``params -> Filter`` (version 0.1) is still taken.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from gmjax._plotting import plot_curves
 from gmjax._progress import Progress
 from gmjax._types import Array, PRNGKey
 from gmjax.filters.base import Filter
+from gmjax.fitting import with_leaves
 from gmjax.models import Scenario
 from gmjax.montecarlo import (
     RunScores,
@@ -167,8 +169,17 @@ class TuneResult(NamedTuple):
     compile_s: float
 
 
+def _leaf_factory(filt: Filter, params0: Mapping[str, float]) -> Callable[[dict[str, Array]], Filter]:
+    """``params -> filt`` with the leaves of ``filt.params`` named in ``params0`` set (checked here)."""
+    try:
+        with_leaves(filt.params, {n: jnp.asarray(float(v)) for n, v in params0.items()})
+    except ValueError as e:
+        raise ValueError(f"params0: {e} (tune takes scalar leaves)") from None
+    return lambda p: filt._replace(params=with_leaves(filt.params, p))
+
+
 def tune(
-    filter_factory: Callable[[dict[str, Array]], Filter],
+    filter_factory: Filter | Callable[[dict[str, Array]], Filter],
     scenario: Scenario,
     params0: Mapping[str, float],
     loss: Callable[[TuneScores], Array],
@@ -184,8 +195,13 @@ def tune(
 ) -> TuneResult:
     """Tune thresholds by gradient descent on a Monte Carlo loss.
 
+    The parameters are leaves of the filter's ``params``, as everywhere else (:func:`study_loss`,
+    :func:`gmjax.fit`): ``tune(filt, sc, {"reducer.rho": 0.9}, ...)`` tunes ``filt.params.reducer.rho``
+    (names as :func:`gmjax.fitting.leaf_names` lists them; scalar leaves). A factory
+    ``params -> Filter`` (version 0.1) is still taken.
+
     Each step simulates ``n_runs`` runs of ``scenario`` (:func:`study_scores`), filters them with
-    ``filter_factory(params)`` and differentiates ``loss(scores)`` with respect to the parameters.
+    the filter at ``params`` and differentiates ``loss(scores)`` with respect to the parameters.
     The optimiser acts on unconstrained values ``u`` with ``params = bounds.to_constrained(u)``, so
     every threshold stays in its valid range. With ``resample`` each step draws fresh runs
     (stochastic gradient; step ``s`` uses ``fold_in(key, s)``), otherwise every step reuses the runs
@@ -194,12 +210,13 @@ def tune(
     loss, gradient) is one compiled function; changing the parameters never recompiles.
 
     Args:
-        filter_factory: ``params -> Filter``; ``params`` is a dict of traced scalars. Put them into
-            a relaxed reducer (e.g. ``PCM(rho=p["rho"], lam=p["lam"], mode="soft", ...)``) or a
-            :func:`soft_split_gate`'s threshold, or the gradient is 0; any leaf of the filter's
-            ``params`` pytree works too (e.g. ``filt._replace(params=...)`` with a traced noise).
+        filter_factory: a :class:`~gmjax.filters.Filter` whose ``params`` hold the tuned leaves
+            (a relaxed reducer's thresholds, e.g. ``PCM(..., mode="soft")``'s ``rho`` and ``lam``,
+            are leaves ``"reducer.rho"``, ``"reducer.lam"``; a hard threshold has gradient 0), or
+            a factory ``params -> Filter`` taking a dict of traced scalars.
         scenario: the :class:`~gmjax.models.Scenario` to simulate.
-        params0: name -> initial value (inside its bounds).
+        params0: name -> initial value (inside its bounds); with a Filter, each name a scalar
+            floating leaf of ``filter.params``.
         loss: ``TuneScores -> ()``, e.g. :func:`armse_loss` or :func:`weighted_loss`.
         optimizer: an optax ``GradientTransformation`` (default ``optax.adam(0.05)``, in
             unconstrained units).
@@ -220,12 +237,14 @@ def tune(
     """
     import optax
 
-    if not callable(filter_factory):
-        raise ValueError("filter_factory: expected a callable params -> Filter")
     if not callable(loss):
         raise ValueError("loss: expected a callable TuneScores -> scalar")
     if not isinstance(params0, Mapping) or not params0:
         raise ValueError(f"params0: expected a non-empty dict name -> value, got {params0!r}")
+    if isinstance(filter_factory, Filter):
+        filter_factory = _leaf_factory(filter_factory, params0)
+    elif not callable(filter_factory):
+        raise ValueError("filter_factory: expected a Filter or a callable params -> Filter")
     for name, arg in (("n_runs", n_runs), ("steps", steps)):
         if isinstance(arg, bool) or not isinstance(arg, int) or arg < 1:
             raise ValueError(f"{name}: must be a positive int, got {arg!r}")

@@ -627,3 +627,18 @@ def test_tune_over_a_leaf_of_filter_params():
     g = jax.grad(f)(jnp.asarray([0.9]))
     np.testing.assert_allclose(res.history.grads["rho"][0], g[0], rtol=1e-8)
     assert np.isfinite(res.history.loss).all()
+
+    # the same tuning named by the leaf of filter.params (the params way, as gmjax.fit): same steps
+    kw = dict(
+        optimizer=optax.sgd(1e-3), n_runs=2, steps=2, key=jax.random.key(4), resample=False, progress=False
+    )
+    by_leaf = T.tune(
+        filt, sc, {"reducer.rho": 0.9}, T.armse_loss(), bounds={"reducer.rho": (0.5, 0.9999)}, **kw
+    )
+    np.testing.assert_allclose(by_leaf.history.loss, res.history.loss, rtol=1e-12)
+    np.testing.assert_allclose(by_leaf.history.grads["reducer.rho"], res.history.grads["rho"], rtol=1e-10)
+    assert by_leaf.params["reducer.rho"] == pytest.approx(res.params["rho"], rel=1e-12)
+    with pytest.raises(ValueError, match="params0: 'reducer.nope' names no floating leaf"):
+        T.tune(filt, sc, {"reducer.nope": 0.9}, T.armse_loss(), **kw)
+    with pytest.raises(ValueError, match="params0: .*shape"):
+        T.tune(filt, sc, {"model.process_noise.covs": 1.0}, T.armse_loss(), **kw)

@@ -37,9 +37,9 @@ steps; it then stops early. A step with a non-finite loss or gradient is skipped
 
 **Resume.** With ``checkpoint=path`` the unconstrained values, the optimiser state and the history are
 written atomically (with a checksum) every ``checkpoint_every`` seconds, at the end and on an
-interruption; the same call resumes and continues bit for bit. :mod:`gmjax.tune`'s factory-based loop
-(version 0.1) remains for its users; ``fit`` reaches the same thresholds through ``params``
-(``fit="reducer.rho"``).
+interruption; the same call resumes and continues bit for bit. :func:`gmjax.tune.tune` names the
+leaves it tunes the same way (``{"reducer.rho": 0.95}``, :func:`with_leaves`); it is the lighter loop
+(scalars in box bounds, a plot of each step), ``fit`` the general one.
 """
 
 from gmjax.fitting._loop import FitHistory as FitHistory
@@ -54,6 +54,7 @@ from gmjax.fitting._params import CONSTRAINTS as CONSTRAINTS
 from gmjax.fitting._params import ParamView as ParamView
 from gmjax.fitting._params import leaf_names as leaf_names
 from gmjax.fitting._params import param_view as param_view
+from gmjax.fitting._params import with_leaves as with_leaves
 
 __all__ = [
     "CONSTRAINTS",
@@ -65,6 +66,7 @@ __all__ = [
     "study",
     "leaf_names",
     "param_view",
+    "with_leaves",
     "loss_fn",
     "fit",
     "plot_history",

@@ -46,6 +46,29 @@ def leaf_names(params: Any) -> list[str]:
     return [_name(p) for p, leaf in jax.tree_util.tree_flatten_with_path(params)[0] if _is_float_leaf(leaf)]
 
 
+def with_leaves(params: Any, values: Mapping[str, Any]) -> Any:
+    """``params`` with the floating leaves named in ``values`` (dotted paths, :func:`leaf_names`)
+    replaced, each in the leaf's dtype (a Python float leaf takes the value as given); traceable.
+
+    Raises:
+        ValueError: a name that is not a floating leaf of ``params`` (the message lists the names),
+            or a value whose shape differs from the leaf's.
+    """
+    flat, treedef = jax.tree_util.tree_flatten_with_path(params)
+    index = {_name(p): i for i, (p, leaf) in enumerate(flat) if _is_float_leaf(leaf)}
+    leaves = [leaf for _, leaf in flat]
+    for name, value in values.items():
+        if name not in index:
+            raise ValueError(f"{name!r} names no floating leaf of the params; the leaves are {list(index)}")
+        old = leaves[index[name]]
+        if jnp.shape(value) != jnp.shape(old):
+            raise ValueError(
+                f"{name!r}: a value of shape {jnp.shape(value)} for a leaf of shape {jnp.shape(old)}"
+            )
+        leaves[index[name]] = value if isinstance(old, float) else jnp.asarray(value, jnp.result_type(old))
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
 # ----------------------------------------------------------------------------- constraints
 
 
