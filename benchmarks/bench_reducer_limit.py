@@ -11,7 +11,8 @@ Timing (``_common.time_alternating``): the first call of each program (compile +
 the steady calls, which run in alternating rounds in one process (gmjax, numba on all threads, numba
 on one thread, gmjax, ...), so a slow spell of the machine slows all alike; median over the rounds.
 Numba's compile time is its first call's time minus its median run (no on-disk cache). gmjax runs
-the batch as a sequential ``lax.map`` of the per-mixture kernel (``_greedy.sequential``), one core;
+the batch as a ``vmap`` over the mixtures, one core: each merge step (the selection by one
+min-reduction of the cost matrices, the merge, one cost row/column) runs for every mixture at once;
 numba's ``prange`` uses every core (``numba.get_num_threads()``), so the one-thread column is the
 per-core comparison. The outputs are checked equal (max abs difference of weights, means,
 covariances; same merge sequence / k-means iteration count).
@@ -163,16 +164,22 @@ def decompose(w, m, P, repeats, threads):
 def render(data):
     load0, load1 = data["loadavg_before"], data["loadavg_after"]
     th = data["numba_threads"]
+    loaded = float(load0[0]) > 0.75 * data["cpu_count"]  # before: the run itself loads a core
+    load_note = (
+        "The machine was loaded (another session's work on the same cores), so compare the ratios "
+        "(measured in alternating rounds in one process) rather than absolute times."
+        if loaded
+        else "The machine was otherwise quiet."
+    )
     md = [
         f"# Compiled per-mixture loops (numba) vs gmjax's batched reducers, {data['batch']} mixtures "
         f"{K_IN} -> {NUM_OUT}, float64",
         "",
         f"Measured {data['date']} on a {data['cpu_count']}-core CPU machine"
-        f"{' (quick smoke run)' if data['quick'] else ''}. The machine was loaded: another session ran "
-        f"tests on the same cores (load average {' '.join(load0)} before, {' '.join(load1)} after), so "
-        "compare the ratios (measured in alternating rounds in one process) rather than absolute times. "
+        f"{' (quick smoke run)' if data['quick'] else ''}, load average {' '.join(load0)} before and "
+        f"{' '.join(load1)} after. {load_note} "
         f"Median of {data['repeats']} rounds; compile time apart. numba {data['numba_version']}, "
-        f"jax {jax.__version__}. gmjax runs the batch as a sequential `lax.map` (one core); the numba "
+        f"jax {jax.__version__}. gmjax runs the batch as one `vmap` over the mixtures (one core); the numba "
         f"batch driver's `prange` used {th} threads ({data['numba_threading_layer']} threading layer), "
         "and the `1 thread` columns are the per-core comparison.",
         "",
@@ -209,8 +216,7 @@ def render(data):
         )
     md += [markdown_table(header, rows), ""]
     md += [
-        "With the two cores busy, numba's two threads were often no faster (sometimes slower) than one: "
-        "read the 1-thread columns. numba compile time: the first call of that reducer's batch driver (every reducer's driver "
+        "The 1-thread columns compare one core with one core. numba compile time: the first call of that reducer's batch driver (every reducer's driver "
         "compiles its own copy of the shared helpers; a d that reuses an already compiled signature "
         "shows ~0). `same merges`: identical output masks, labels and merge sequence (GMRC: k-means "
         "iteration count).",
@@ -237,11 +243,10 @@ def render(data):
             "one cost row/column), µs per mixture; numba on one thread. gmjax's fixed part is the smaller: "
             "XLA evaluates the whole K x K cost matrix as one vectorised kernel (SIMD, vectorised log), while "
             "the numba loop pays a scalar libm log per pair (pip's llvmlite has no SVML). gmjax's merge "
-            "step is the larger: each of the 40 steps runs the `fori_loop` body (the `while_loop` pair "
-            "search, whole-array selects and cost-row scatters, and every slot's log-determinant recomputed "
-            "for the new row), which we read as per-step latency of many small XLA operations rather than "
-            "arithmetic (an inference from this split and from the cost per merge staying at 5-10 µs for "
-            "K = 15, not a profile).",
+            "step batches over the mixtures: its selection is one min-reduction over the K x K costs "
+            "(O(K^2) against numba's O(K) scan of cached row minima) and its cost row reads every slot's "
+            "d x d covariance for the unrolled Cholesky, so its cost per merge grows with d faster than "
+            "numba's.",
             "",
             markdown_table(
                 [

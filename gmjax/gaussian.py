@@ -444,13 +444,18 @@ def spd_kl(m1: Array, P1: Array, m2: Array, P2: Array) -> jax.Array:
 
 
 def moment_merge_pair(
-    w1: Array, m1: Array, P1: Array, w2: Array, m2: Array, P2: Array
+    w1: Array, m1: Array, P1: Array, w2: Array, m2: Array, P2: Array, *, symmetrize: bool = True
 ) -> tuple[Array, Array, Array]:
     """Moment-preserving merge of two components (seed 002 eqs 70–72 written with ``lambda_i``).
 
     ``W = w1 + w2``, ``l_i = w_i / W``, ``m = l1 m1 + l2 m2``,
     ``P = l1 P1 + l2 P2 + l1 l2 (m1 - m2)(m1 - m2)^T``. A pair of zero weights gives equal ``l_i``.
     Broadcasts over leading axes: weights ``(...)``, means ``(..., d)``, covariances ``(..., d, d)``.
+
+    ``symmetrize`` (static): return ``(P + P^T) / 2``. For exactly symmetric ``P1``, ``P2`` the
+    formula is already exactly symmetric (every entry and its mirror are the same products), so
+    ``False`` changes no bit there; it saves a transposed copy of a batch of merged covariances
+    that only feed a Cholesky, which reads the lower triangle (e.g. a row of merge costs).
     """
     W = w1 + w2
     ok = W > 0
@@ -464,4 +469,4 @@ def moment_merge_pair(
         + l2[..., None, None] * P2
         + (l1 * l2)[..., None, None] * diff[..., :, None] * diff[..., None, :]
     )
-    return W, m, 0.5 * (P + jnp.swapaxes(P, -1, -2))
+    return W, m, 0.5 * (P + jnp.swapaxes(P, -1, -2)) if symmetrize else P

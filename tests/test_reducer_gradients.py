@@ -235,10 +235,10 @@ def test_brute_force_with_tiny_weights_picks_the_same_partition():
 
 
 @pytest.mark.parametrize("name", ["runnalls", "salmond"])
-def test_jit_grad_of_vmapped_sequential_reducers_equals_the_loop(name):
-    """Runnalls and Salmond batch as a sequential map under ``vmap``; ``jit(grad(vmap(...)))`` used to
-    fail with an ``IndexError`` (outputs independent of the batched mixture, such as the threshold,
-    came back unbatched from the derivative rule). It now runs and equals the per-mixture gradients."""
+def test_jit_grad_of_vmapped_greedy_reducers_equals_the_loop(name):
+    """``jit(grad(vmap(...)))`` of Runnalls and Salmond equals the per-mixture gradients (it once
+    failed with an ``IndexError`` when they batched as a sequential map with a custom rule; they
+    now batch as plain ``vmap``)."""
     reducer = {"runnalls": reduction.Runnalls(num_out=3), "salmond": reduction.Salmond(num_out=3)}[name]
     gms = [padded_mixture(seed) for seed in (1, 2)]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)

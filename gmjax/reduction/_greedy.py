@@ -25,7 +25,6 @@ import jax
 import jax.numpy as jnp
 
 from gmjax import gaussian
-from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction.base import make_info
@@ -40,7 +39,6 @@ class GreedyState(NamedTuple):
     mask: jax.Array
     labels: jax.Array
     C: jax.Array
-    lb: jax.Array
     merges: jax.Array
     total: jax.Array
     n_live: jax.Array
@@ -54,9 +52,8 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
     against every slot (or None when ``select`` does not use the cost matrix).
 
     The pair-cost matrix ``C`` is kept "clean" (``+inf`` on and below the diagonal and in the rows
-    and columns of dead slots) together with ``lb``, a lower bound of every row minimum, so a step
-    costs ``O(K)`` instead of ``O(K^2)`` (see :func:`upper_argmin`): after a merge only row ``i``
-    and column ``i`` change (``lb`` lowered where column ``i`` decreased) and row/column ``j`` die.
+    and columns of dead slots): after a merge only row ``i`` and column ``i`` are recomputed
+    (``O(K)`` costs) and row/column ``j`` die; the selection (:func:`upper_argmin`) reads ``C``.
     """
     K = gm.capacity
     n_steps = K - num_out
@@ -66,14 +63,18 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
     threshold = jax.lax.stop_gradient(threshold)
 
     def body(step, s):
-        i, j, c, lb = select(s)
+        i, j, c = select(s)
         do = (s.n_live > num_out) & (c <= threshold) & jnp.isfinite(c)
         W, mm, PP = gaussian.moment_merge_pair(s.w[i], s.m[i], s.P[i], s.w[j], s.m[j], s.P[j])
         at_i = (ar == i) & do
         at_j = (ar == j) & do
-        w = jnp.where(at_i, W, jnp.where(at_j, 0.0, s.w))
-        m = jnp.where(at_i[:, None], mm, jnp.where(at_j[:, None], 0.0, s.m))
-        P = jnp.where(at_i[:, None, None], PP, jnp.where(at_j[:, None, None], eye, s.P))
+        # two row writes (an out-of-range index and mode="drop" when no merge happens), not
+        # whole-array selects: O(d^2) per step instead of O(K d^2)
+        ii = jnp.where(do, i, K)
+        jj = jnp.where(do, j, K)
+        w = s.w.at[ii].set(W, mode="drop").at[jj].set(0.0, mode="drop")
+        m = s.m.at[ii].set(mm, mode="drop").at[jj].set(0.0, mode="drop")
+        P = s.P.at[ii].set(PP, mode="drop").at[jj].set(eye, mode="drop")
         mask = s.mask & ~at_j
         labels = jnp.where(do & (s.labels == j), i, s.labels)
         logdet = None if s.logdet is None else jnp.where(at_i, gaussian.spd_logdet(PP), s.logdet)
@@ -83,14 +84,9 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
             row = jnp.where(mask & (ar != i), row_cost(s2, i), jnp.inf)
             row_up = jnp.where(ar > i, row, jnp.inf)  # C[i, k], k > i
             col_lo = jnp.where(ar < i, row, jnp.inf)  # C[k, i], k < i
-            # out-of-range index + mode="drop" when no merge happens: pure in-place writes
-            ii = jnp.where(do, i, K)
-            jj = jnp.where(do, j, K)
             inf_row = jnp.full((K,), jnp.inf, C.dtype)
             C = C.at[ii, :].set(row_up, mode="drop").at[:, ii].set(col_lo, mode="drop")
             C = C.at[jj, :].set(inf_row, mode="drop").at[:, jj].set(inf_row, mode="drop")
-            lb = jnp.where(do, jnp.minimum(lb, col_lo), lb)
-            lb = jnp.where(at_i, jnp.min(row_up), jnp.where(at_j, jnp.inf, lb))
         merges = s.merges.at[step].set(jnp.where(do, jnp.stack([i, j]), -1).astype(jnp.int32))
         return GreedyState(
             w,
@@ -99,7 +95,6 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
             mask,
             labels,
             C,
-            lb,
             merges,
             s.total + jnp.where(do, c, 0.0),
             s.n_live - do.astype(jnp.int32),
@@ -116,39 +111,20 @@ def clean_upper(C, mask):
 
 
 def upper_argmin(s: GreedyState):
-    """The first minimiser of ``C`` in row-major order, from the row lower bounds ``lb``.
+    """The first minimiser of ``C`` in row-major order, ``(i, j, cost)``: the first row with the
+    smallest row minimum, then that row's first minimiser, so the result equals
+    ``argmin(C.reshape(-1))``.
 
-    Repeatedly take the row with the smallest bound (lowest index on ties) and tighten its bound to
-    the true row minimum; once the chosen row's bound is tight it is the global minimum, and no
-    row before it can hold an equal value (its bound would be <= and it would have been chosen),
-    so the result equals ``argmin(C.reshape(-1))``. A ``while_loop`` (at most ``K + 1`` rounds);
-    returns ``(i, j, cost, lb)``.
+    The row minima are one plain ``min`` reduction over ``C`` (``O(K^2)``, vectorised); under
+    ``vmap`` over a batch of mixtures this is several times faster than tracking lower bounds of
+    the row minima with a ``while_loop`` (which runs until the slowest mixture of the batch is
+    done; ``benchmarks/results/reducer_limit.md``). The search runs on stopped values (it only
+    picks indices); the selected cost is read from the differentiable matrix.
     """
-    K = s.w.shape[0]
-    cost_matrix = s.C
-
-    def cond(c):
-        _, _, tight, n = c
-        return (~tight) & (n <= K)
-
-    def body(c):
-        lb, _, _, n = c
-        i = jnp.argmin(lb)
-        true = jnp.min(s.C[i, :])
-        tight = (true == lb[i]) | jnp.isinf(lb[i])
-        return lb.at[i].set(true), i.astype(jnp.int32), tight, n + 1
-
-    # the search only picks indices: it runs on stopped values (a while_loop is not reverse-mode
-    # differentiable), and the selected cost is read from the differentiable matrix afterwards
     C = jax.lax.stop_gradient(s.C)
-    s = s._replace(C=C)
-    lb, i, _, _ = jax.lax.while_loop(
-        cond,
-        body,
-        (jax.lax.stop_gradient(s.lb), jnp.zeros((), jnp.int32), jnp.asarray(False), jnp.zeros((), jnp.int32)),
-    )
+    i = jnp.argmin(jnp.min(C, axis=1)).astype(jnp.int32)
     j = jnp.argmin(C[i, :]).astype(jnp.int32)
-    return i, j, cost_matrix[i, j], lb
+    return i, j, s.C[i, j]
 
 
 def init_state(gm, C, logdet=None):
@@ -164,7 +140,6 @@ def init_state(gm, C, logdet=None):
         gm.mask,
         _util.identity_labels(gm),
         C,
-        jnp.min(C, axis=1),
         jnp.full((max(n_steps, 1), 2), -1, jnp.int32),
         jnp.zeros((), w.dtype),
         jnp.sum(gm.mask.astype(jnp.int32)),
@@ -177,53 +152,3 @@ def finish(gm, s, n_steps, capacity):
     out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
     aux = {"merges": s.merges[:n_steps]}
     return out, make_info(gm, out, labels, pruned_mass=dropped, overflow=overflow, cost=s.total, aux=aux)
-
-
-def sequential(core):
-    """Batch ``core`` under ``vmap`` as a sequential ``lax.map`` (``custom_batching``).
-
-    The O(K)-per-step greedy loop updates single rows and columns of the cost matrix in place;
-    a vmapped version turns these into batched scatters over ``(B, K, K)`` and runs several times
-    slower than mapping the per-mixture kernel over the batch.
-
-    A ``custom_vmap`` has no differentiation rule, so the sequential kernel is wrapped in a
-    ``custom_jvp`` whose rule differentiates ``core`` itself: ``jax.grad`` / ``jax.jacfwd`` work
-    (under ``vmap`` the derivative runs batched, the value sequentially).
-    """
-    seq = jax.custom_batching.sequential_vmap(core)
-    fn = jax.custom_jvp(lambda *args: seq(*args))
-
-    def jvp(primals, tangents):
-        out, out_dot = jax.jvp(core, primals, tangents)
-        zero = _zero_of(primals)
-        return _tied(out, zero), _tied(out_dot, zero)
-
-    fn.defjvp(jvp)
-    return fn
-
-
-def _zero_of(tree) -> Array:
-    """A scalar ``0.0`` that depends on every array leaf of ``tree`` (NaN-safe: a ``where``, not ``0 *``).
-
-    Under ``vmap`` the sequential kernel returns every output batched; an output of ``core`` that
-    does not depend on a batched input (a threshold passed through, a constant) comes back from
-    ``jax.jvp(core)`` unbatched, and ``jit`` then fails with an ``IndexError`` when it batches the
-    linearised program. Adding this zero batches such outputs as the primal rule does.
-    """
-    zero = jnp.zeros(())
-    for leaf in jax.tree_util.tree_leaves(tree):
-        if jnp.size(leaf) and jnp.issubdtype(jnp.result_type(leaf), jnp.number):
-            zero = zero + jnp.where(False, jnp.ravel(leaf)[0], 0).astype(zero.dtype)
-    return zero
-
-
-def _tied(tree, zero: Array):
-    def tie(x):
-        dtype = jnp.result_type(x)
-        if dtype == jax.dtypes.float0:
-            return x
-        if dtype == jnp.bool_:
-            return x | (zero != 0)
-        return x + zero.astype(dtype)
-
-    return jax.tree_util.tree_map(tie, tree)

@@ -23,7 +23,6 @@ from gmjax.reduction._greedy import (
     finish,
     greedy_steps,
     init_state,
-    sequential,
     upper_argmin,
 )
 from gmjax.reduction.base import CountThreshold, ReductionInfo, calls
@@ -52,7 +51,7 @@ def runnalls_cost(
     = 1/2 [log det P_ij - l_i log det P_i - l_j log det P_j]`` with ``l_i = w_i / (w_i + w_j)``
     (``l_i = 1/2`` for a pair of zero weight; seed 001 Step 6 rule 2).
     """
-    W, _, Pij = gaussian.moment_merge_pair(wi, mi, Pi, wj, mj, Pj)
+    W, _, Pij = gaussian.moment_merge_pair(wi, mi, Pi, wj, mj, Pj, symmetrize=False)  # only its log det
     ldi = gaussian.spd_logdet(Pi) if ldi is None else ldi
     ldj = gaussian.spd_logdet(Pj) if ldj is None else ldj
     if normalized:
@@ -67,7 +66,7 @@ def runnalls_cost(
 @partial(jax.jit, static_argnames=("num_out", "capacity"))
 def _runnalls(gm, num_out, threshold, capacity):
     threshold = jax.lax.stop_gradient(threshold)  # piecewise constant: zero gradient a.e.
-    return sequential(lambda g, t: _runnalls_core(g, num_out, t, capacity))(gm, threshold)
+    return _runnalls_core(gm, num_out, threshold, capacity)
 
 
 def _runnalls_core(gm, num_out, threshold, capacity):

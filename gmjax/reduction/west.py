@@ -46,7 +46,7 @@ def _west(gm, num_out, threshold, capacity, metric, enhanced):
         dist = west_distance(s.m[i], s.P[i], s.m, s.P, metric)
         dist = jnp.where(s.mask & (jnp.arange(K) != i), dist, jnp.inf)
         j = jnp.argmin(dist).astype(jnp.int32)
-        return i, j, dist[j], s.lb
+        return i, j, dist[j]
 
     body, n_steps = greedy_steps(gm, num_out, threshold, select, None)
     s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, jnp.zeros((1, 1), gm.weights.dtype)))
