@@ -43,6 +43,7 @@ class GreedyState(NamedTuple):
     total: jax.Array
     n_live: jax.Array
     logdet: jax.Array | None = None  # (K,) log det P per slot, kept current when a row cost reads it
+    Pinv: jax.Array | None = None  # (K, d, d) P^{-1} per slot, kept current when a selection reads it
 
 
 def greedy_steps(gm, num_out, threshold, select, row_cost):
@@ -78,6 +79,7 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
         mask = s.mask & ~at_j
         labels = jnp.where(do & (s.labels == j), i, s.labels)
         logdet = None if s.logdet is None else jnp.where(at_i, gaussian.spd_logdet(PP), s.logdet)
+        Pinv = None if s.Pinv is None else s.Pinv.at[ii].set(gaussian.spd_inv(PP), mode="drop")
         C = s.C
         if row_cost is not None:
             s2 = s._replace(w=w, m=m, P=P, mask=mask, logdet=logdet)
@@ -99,6 +101,7 @@ def greedy_steps(gm, num_out, threshold, select, row_cost):
             s.total + jnp.where(do, c, 0.0),
             s.n_live - do.astype(jnp.int32),
             logdet,
+            Pinv,
         )
 
     return body, n_steps
@@ -127,9 +130,10 @@ def upper_argmin(s: GreedyState):
     return i, j, s.C[i, j]
 
 
-def init_state(gm, C, logdet=None):
-    """The loop's start; ``logdet`` ``(K,)``: each slot's ``log det P``, carried and updated for the
-    merged slot only (a row cost then reads ``state.logdet`` instead of recomputing every slot's)."""
+def init_state(gm, C, logdet=None, Pinv=None):
+    """The loop's start; ``logdet`` ``(K,)`` / ``Pinv`` ``(K, d, d)``: each slot's ``log det P`` /
+    ``P^{-1}``, carried and updated for the merged slot only (a row cost or a selection then reads
+    them instead of recomputing every slot's)."""
     K = gm.capacity
     n_steps = K
     w = jnp.where(gm.mask, gm.weights, 0.0)
@@ -144,6 +148,7 @@ def init_state(gm, C, logdet=None):
         jnp.zeros((), w.dtype),
         jnp.sum(gm.mask.astype(jnp.int32)),
         logdet,
+        Pinv,
     )
 
 
