@@ -43,6 +43,7 @@ __all__ = [
     "spd_inv_quad",
     "spd_logpdf",
     "spd_kl",
+    "spd_kl_from_inverse",
     "moment_merge_pair",
 ]
 
@@ -441,6 +442,18 @@ def spd_kl(m1: Array, P1: Array, m2: Array, P2: Array) -> jax.Array:
     P2i = spd_inv(P2)
     tr = jnp.sum(P2i * P1, axis=(-1, -2))
     return 0.5 * (tr + spd_inv_quad(m2 - m1, P2) - d + spd_logdet(P2) - spd_logdet(P1))
+
+
+def spd_kl_from_inverse(m1: Array, P1: Array, ld1: Array, m2: Array, P2inv: Array, ld2: Array) -> Array:
+    """``KL(N(m1, P1) || N(m2, P2))`` from ``P2^{-1}`` and both log-determinants (``ld1 = log det
+    P1``, ``ld2 = log det P2``), broadcast over leading axes: :func:`spd_kl` when the inverses and
+    log-determinants are carried (a greedy reduction or a k-means assignment that reuses them).
+    ``0.5 [tr(P2^{-1} P1) + (m2 - m1)^T P2^{-1} (m2 - m1) - d + ld2 - ld1]``."""
+    d = P1.shape[-1]
+    diff = m2 - m1
+    tr = jnp.sum(P2inv * P1, axis=(-1, -2))
+    quad = jnp.sum(diff[..., :, None] * P2inv * diff[..., None, :], axis=(-1, -2))
+    return 0.5 * (tr + quad - d + ld2 - ld1)
 
 
 def moment_merge_pair(

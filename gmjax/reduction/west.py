@@ -34,17 +34,6 @@ def west_distance(mi: Array, Pi: Array, mj: Array, Pj: Array, metric: str) -> Ar
     return jii + jjj - 2.0 * jij
 
 
-def _kl_from_cache(mi: Array, Pi: Array, ld_i: Array, m: Array, Pinv: Array, ld: Array) -> Array:
-    """``KL(N(mi, Pi) || N(m_k, P_k))`` for every ``k`` from ``P_k^{-1}`` and the log-determinants
-    (the arithmetic of :func:`gmjax.gaussian.spd_kl`, with the inverse carried instead of
-    re-factorised every step); ``(K,)``."""
-    d = Pi.shape[-1]
-    diff = m - mi
-    tr = jnp.sum(Pinv * Pi, axis=(-1, -2))
-    quad = jnp.sum(diff[..., :, None] * Pinv * diff[..., None, :], axis=(-1, -2))
-    return 0.5 * (tr + quad - d + ld - ld_i)
-
-
 @partial(jax.jit, static_argnames=("num_out", "capacity", "metric", "enhanced"))
 def _west(gm, num_out, threshold, capacity, metric, enhanced):
     K = gm.capacity
@@ -55,7 +44,7 @@ def _west(gm, num_out, threshold, capacity, metric, enhanced):
         score = s.w / jnp.exp(s.logdet) if enhanced else s.w
         i = jnp.argmin(jnp.where(s.mask, score, jnp.inf)).astype(jnp.int32)
         if metric == "kl":  # KL(N_i || N_k) from the carried P_k^{-1} and log det P_k
-            dist = _kl_from_cache(s.m[i], s.P[i], s.logdet[i], s.m, s.Pinv, s.logdet)
+            dist = gaussian.spd_kl_from_inverse(s.m[i], s.P[i], s.logdet[i], s.m, s.Pinv, s.logdet)
         else:
             dist = west_distance(s.m[i], s.P[i], s.m, s.P, metric)
         dist = jnp.where(s.mask & (jnp.arange(K) != i), dist, jnp.inf)
