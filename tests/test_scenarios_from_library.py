@@ -39,7 +39,7 @@ def test_bearings_only_from_the_library_equals_the_former_construction():
     sc = bearings_only(n_steps=120)
     old = _old_bearings_model()
     new = sc.model
-    assert new.angle_dims == () and new.call == "auto"
+    assert new.angle_dims == () and new.call == "t"
     np.testing.assert_array_equal(new.process_noise.means, old.process_noise.means)
     np.testing.assert_allclose(new.process_noise.covs, old.process_noise.covs, rtol=1e-15, atol=0)
     for leaf_new, leaf_old in zip(new.measurement_noise, old.measurement_noise):
