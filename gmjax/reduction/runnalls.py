@@ -19,6 +19,8 @@ from gmjax._types import Array
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
 from gmjax.reduction._greedy import (
+    BLOCK,
+    chunked,
     clean_upper,
     finish,
     greedy_steps,
@@ -66,7 +68,9 @@ def runnalls_cost(
 @partial(jax.jit, static_argnames=("num_out", "capacity"))
 def _runnalls(gm, num_out, threshold, capacity):
     threshold = jax.lax.stop_gradient(threshold)  # piecewise constant: zero gradient a.e.
-    return _runnalls_core(gm, num_out, threshold, capacity)
+    block = BLOCK if gm.dim >= 3 else None  # measured: see chunked
+    core = chunked(lambda g, t: _runnalls_core(g, num_out, t, capacity), block)
+    return core(gm, threshold)
 
 
 def _runnalls_core(gm, num_out, threshold, capacity):

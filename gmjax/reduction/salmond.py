@@ -13,7 +13,15 @@ from gmjax._pytree import pytree_dataclass
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, moments
 from gmjax.reduction import _util
-from gmjax.reduction._greedy import clean_upper, finish, greedy_steps, init_state, upper_argmin
+from gmjax.reduction._greedy import (
+    BLOCK,
+    chunked,
+    clean_upper,
+    finish,
+    greedy_steps,
+    init_state,
+    upper_argmin,
+)
 from gmjax.reduction.base import CountThreshold, ReductionInfo, calls
 
 __all__ = ["salmond", "salmond_cost", "Salmond"]
@@ -36,7 +44,7 @@ def salmond_cost(wi: Array, mi: Array, wj: Array, mj: Array, Pinv_total: Array) 
 @partial(jax.jit, static_argnames=("num_out", "capacity"))
 def _salmond(gm, num_out, threshold, capacity):
     threshold = jax.lax.stop_gradient(threshold)
-    return _salmond_core(gm, num_out, threshold, capacity)
+    return chunked(lambda g, t: _salmond_core(g, num_out, t, capacity), BLOCK)(gm, threshold)
 
 
 def _salmond_core(gm, num_out, threshold, capacity):
