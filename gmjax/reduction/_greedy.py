@@ -168,13 +168,13 @@ BLOCK = 32
 def chunked(core, batch_size: int | None):
     """``core`` that runs under ``vmap`` in blocks of ``batch_size`` mixtures (``custom_batching``):
     a ``lax.map`` over blocks of a vmapped ``core`` (the same per-mixture program as the plain vmap,
-    same values; a batch under two blocks is one plain vmap); ``None``: ``core`` itself.
+    same values; a batch of at most one block is one plain vmap); ``None``: ``core`` itself.
 
     Each merge step reads and writes the batch's whole working set (cost matrices, covariances,
     the row cost's intermediates); over a large batch it leaves the cache, and the plain vmap of
     the loop can be several times slower than the same loop in blocks. Which is faster is measured,
     not derived (``bench_reducer_limit.py``, ``bench_cost_model.py``): blocks for Runnalls at
-    ``d >= 3`` (1000 mixtures 60 -> 20 at d = 4: 1.5x; the R-GSF of the cost model at d = 4:
+    ``d >= 3`` (1000 mixtures 60 -> 20 at d = 4: 1.3x; the R-GSF of the cost model at d = 4:
     2.3x) and for Salmond at every ``d`` (1.2-2x); the plain vmap for Runnalls at ``d <= 2`` (the
     R-GSF at d = 1 is 1.25x slower in blocks) and for West.
 
