@@ -466,7 +466,9 @@ def test_bad_arguments_are_refused_naming_them(small_phd, short_jump):
     assert not os.path.exists("fit.npz")
 
 
-@pytest.mark.parametrize("which", ["cphd", "lmb"])
+# the GM-LMB case is slow (about 35 s); its clutter-rate gradient is checked against central
+# differences in the default suite (test_lmb)
+@pytest.mark.parametrize("which", ["cphd", pytest.param("lmb", marks=pytest.mark.slow)])
 def test_clutter_rate_by_maximum_likelihood_is_the_grid_optimum_near_the_truth(which):
     """``gmjax.fit`` with ``nll()`` on padded sets for the GM-CPHD (its exact i.i.d.-cluster likelihood)
     and the GM-LMB (the likelihood of its drawn hypotheses, the same draws every step): the fitted

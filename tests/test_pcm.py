@@ -415,11 +415,12 @@ def _assert_same_derivative(ours, scan):
     np.testing.assert_allclose(ours, scan, rtol=1e-10, atol=1e-14 * float(np.max(np.abs(scan))))
 
 
-def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
+def test_newton_early_exit_equals_the_fixed_scan():
     """Newton stops once every run is done (``while_loop``s) and returns exactly what the fixed
-    8-step ``scan`` returns, alone and under vmap; its forward-mode derivative (a custom JVP through
-    that scan) equals the scan's. Reverse mode: the slow test below, and the 1-D search's ``jax.grad``
-    against finite differences (``test_search_in_1d_gradient_matches_finite_differences``)."""
+    8-step ``scan`` returns, alone and under vmap. Derivatives: the slow tests below (forward and
+    reverse mode against the scan's), and in the default suite the 1-D search's ``jax.grad`` (the
+    transpose of the custom JVP) against finite differences
+    (``test_search_in_1d_gradient_matches_finite_differences``)."""
     args, lam0, early, fixed = _newton_early_and_fixed()
     batched_early, batched_fixed = jax.jit(jax.vmap(early))(args, lam0), jax.jit(jax.vmap(fixed))(args, lam0)
     for a, b in zip(batched_early, batched_fixed):
@@ -433,6 +434,13 @@ def test_newton_early_exit_equals_the_fixed_scan_and_differentiates_like_it():
     assert "while" in str(jax.make_jaxpr(early)(one, lam0[0])) and "scan" not in str(
         jax.make_jaxpr(early)(one, lam0[0])
     )
+
+
+@pytest.mark.slow  # two forward-mode programs through the scan: about 30 s of compiling
+def test_newton_early_exit_differentiates_like_the_fixed_scan_in_forward_mode():
+    """The forward-mode derivative of Newton's early exit (a custom JVP through the fixed ``scan``)
+    equals the scan's own."""
+    args, lam0, early, fixed = _newton_early_and_fixed()
 
     def forward(f):  # d λ / d τ
         return lambda t, a, p, l: jax.jvp(lambda t_: _lam_of(f, t_, a, p, l), (t,), (jnp.ones_like(t),))[1]
