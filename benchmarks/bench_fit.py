@@ -7,7 +7,7 @@ of that step (``FitResult.compile_s``, apart from the run time), the seconds per
 median over repeated fits where the fit is repeated), the steps taken, the convergence flag and the
 fitted values beside a reference.
 
-1. **Kalman filter noise variances by maximum likelihood** (the setting of ``tests/test_fitting.py``):
+1. **Kalman filter noise variances by maximum likelihood** (the setting of ``tests/fitting/test_fitting.py``):
    scalar ``x_k = 0.95 x_{k-1} + w``, ``z = x + v``, true ``Q = 0.3``, ``R = 1.5``, ``x_0 ~ N(0, 4)``,
    3 sequences of 80 steps, ``fit=["Q", "R"]`` from ``Q = R = 1``. References:
    ``references/kalman_np.py``'s ``ml_noise_variances`` (exact likelihood, scipy Nelder-Mead
@@ -22,7 +22,7 @@ fitted values beside a reference.
 2. **A GSF's Gaussian-mixture measurement noise by maximum likelihood**: scalar ``x_k = 0.9 x_{k-1} + w``
    (``q = 0.1``), ``z = x + v``, ``v`` a 2-component mixture (weights 0.3/0.7, means -2/1,
    variances 0.3/0.6: components separated by about 4 standard deviations of the innovation, so 300
-   steps identify them; with the overlapping mixture of ``tests/test_reference_gm_noise.py``, q = 0.5,
+   steps identify them; with the overlapping mixture of ``tests/fitting/test_reference_gm_noise.py``, q = 0.5,
    means -1.5/0.8, variances 0.4/1.2, the fits equal the grid ML but the ML estimator itself is biased
    at T = 300: 2.4-3.7 standard errors on 20 data sets, seeds 100..119, measured 2026-12-06),
    ``x_0 ~ N(0, 2)``, ``T = 300``; KF-based GSF with Runnalls reduction to 6
@@ -119,7 +119,7 @@ def _rel(a, b):
 
 
 def kf_data() -> np.ndarray:
-    """The data of tests/test_fitting.py: 3 sequences of 80 steps, rng seed 0."""
+    """The data of tests/fitting/test_fitting.py: 3 sequences of 80 steps, rng seed 0."""
     F, H = np.array([[KF_F]]), np.array([[1.0]])
     rng = np.random.default_rng(0)
     zs = np.empty((KF_B, KF_T, 1))
@@ -233,7 +233,7 @@ def kf_section(args) -> dict:
     m_med = statistics.median(m_step)
     out = {
         "setup": f"x_k = {KF_F} x_(k-1) + w, z = x + v, Q = {KF_Q}, R = {KF_R}, x_0 ~ N(0, {KF_P0}); "
-        f"{KF_B} sequences x {KF_T} steps (tests/test_fitting.py data); fit Q, R from 1, 1",
+        f"{KF_B} sequences x {KF_T} steps (tests/fitting/test_fitting.py data); fit Q, R from 1, 1",
         "gmjax": {
             "compile_s": res.compile_s,
             "first_call_s": first_call_s,

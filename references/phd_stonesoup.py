@@ -16,7 +16,7 @@ Convention bridges (so that both compute Vo & Ma's Table I on identical inputs):
 * Stone Soup has no state extraction component: Table III (``w > 0.5``, ``round(w)`` copies) is
   applied to its reduced mixture here.
 
-Differences that remain (by design of the two libraries, measured in ``tests/test_phd.py``):
+Differences that remain (by design of the two libraries, measured in ``tests/multitarget/test_phd.py``):
 Stone Soup's reducer keeps ``w >= T`` and *redistributes* the pruned weight equally over the
 survivors (Vo & Ma and gmjax drop it); it merges with ``d < U`` measured against the running merged
 component (Vo & Ma: ``d <= U`` against the heaviest component) and **caps a merged weight at 1**;

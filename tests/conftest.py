@@ -24,6 +24,9 @@ import pytest  # noqa: E402
 
 # the independent references (references/, plain NumPy/SciPy) import as `references` from any test
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# Tests mirror the package (tests/reduction/ beside gmjax/reduction/, ...); the helpers they share
+# (test_contract's tables, test_reduction_utils' random mixtures) import by name from tests/.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 # Tests run with float64 available; float32 cases pass dtype=jnp.float32 explicitly.
 jax.config.update("jax_enable_x64", True)

@@ -289,7 +289,7 @@ def test_imm_gsf_jit_eager_vmap_loop_float32_and_missing_measurement():
     np.testing.assert_allclose(out32.extra["model_probs"], batched.extra["model_probs"][0], atol=2e-3)
 
 
-@pytest.mark.slow  # 35 s of compiling; the IMM's (tests/test_imm.py) and the GSF's gradients run by default
+@pytest.mark.slow  # 35 s of compiling; the IMM's (tests/filters/test_imm.py) and the GSF's gradients run by default
 def test_imm_gsf_grad_wrt_process_noise_matches_finite_difference():
     models = [_linear(F1, H1), _linear(F2, H2)]
     filt = build_imm_gsf(

@@ -321,7 +321,7 @@ def gaussian_sum_smoother(
     reduced back to ``capacity`` by ``reducer`` at every step. It is the mixture form of the RTS
     backward pass (Rauch, Tung & Striebel 1965) with a reducer in the loop, as the Gaussian sum filter
     has in its forward pass; Kitagawa's (1994) Gaussian-sum smoother instead uses the two-filter
-    formula. Checked against a dense-grid forward-backward smoother in ``tests/test_smoother.py``.
+    formula. Checked against a dense-grid forward-backward smoother in ``tests/filters/test_smoother.py``.
 
     Args:
         model: the model of the forward pass (``f``, its Jacobian, the GM process noise).

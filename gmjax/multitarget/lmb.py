@@ -25,7 +25,7 @@ IEEE TSP 62(12), 2014:
 * **truncation**: the sum runs over the distinct hypotheses drawn by a Gibbs sampler with a budget of
   ``n_samples`` rows (Vo, Vo & Hoang 2017, instead of Murty's ranked assignments, as Vo's public LMB
   code does; :mod:`gmjax.multitarget.hypotheses`), weighted exactly and renormalised: exact once every
-  hypothesis is drawn (``tests/test_lmb.py`` checks it against an enumeration).
+  hypothesis is drawn (``tests/multitarget/test_lmb.py`` checks it against an enumeration).
 * **reduction**: per track, components with weight ``< component_threshold`` are dropped and the
   ``J`` heaviest kept (renormalised; a track whose every component is below the threshold keeps its
   heaviest); tracks with ``r' < existence_threshold`` are dropped and the ``T`` most probable kept, in

@@ -17,7 +17,7 @@ from gmjax.filters import StepInputs, bank
 from gmjax.models import ModelParams
 from gmjax.scenarios import uwb_velocity
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from references.bank_np import _dare, bank_filter_np  # noqa: E402
 
 DT = uwb_velocity.DT

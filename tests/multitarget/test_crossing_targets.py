@@ -13,7 +13,7 @@ import pytest
 
 from gmjax import multitarget as mt
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 
 def _true_positions(sc):

@@ -1,7 +1,7 @@
 """Issue 48's Done-when at scale: a 10^5-run study split in 2 and 3 parts, killed and resumed, and run by two
 processes under ``jax.distributed``, each bit-identical to the whole (``benchmarks/bench_exact_study.py``).
 
-The default suite checks the same properties on small studies (``tests/test_montecarlo.py``).
+The default suite checks the same properties on small studies (``tests/montecarlo/test_montecarlo.py``).
 """
 
 import sys
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 
 @pytest.mark.slow

@@ -31,7 +31,7 @@ from gmjax.scenarios.growth_model import ungm, ungm_gmm_setup, ungm_transition
 from gmjax.scenarios.linear_system import linear_system
 from gmjax.split import gauss_hermite_library, split_repeated
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from references.pcrb_ref import (  # noqa: E402
     gh_library,
     kalman_covariances,

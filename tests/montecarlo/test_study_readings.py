@@ -54,7 +54,7 @@ def test_zero_centred_glint_variant_is_its_own_table_and_keeps_the_variance():
 
 
 def _split_room():
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     from bench_seed001 import SPLIT_ROOM
 
     return SPLIT_ROOM

@@ -149,7 +149,7 @@ def test_pf_one_update_with_angular_gm_noise_matches_numpy():
 
 # --- the seed 004 bank with irregular dt, a control and the step's process noise -----------------
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from references.bank_np import _kf, _logpdf, _moments  # noqa: E402
 
 T_BANK = 20

@@ -18,7 +18,7 @@ from gmjax.reduction.clustering import (
     similarity_thresholds,
 )
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from references import pcm_numpy as ref  # noqa: E402
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import default_xla_env
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from gmjax import mixture as gmm  # noqa: E402
 from gmjax.filters import run  # noqa: E402
@@ -284,7 +284,7 @@ def test_psi_inf_equals_gsckf_exactly(gamma_data, runner):
     _, a = runner(AGSFConfig(psi_th=math.inf), zs[0])
     _, split = runner(AGSFConfig(), zs[0])
     assert int(jnp.sum(a.extra["n_split"])) == 0 and int(jnp.sum(split.extra["n_split"])) > 0
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     env = default_xla_env(JAX_PLATFORMS="cpu", PYTHONPATH=str(root))
     res = subprocess.run(
         [sys.executable, "-c", _PSI_INF_SCRIPT, str(T_SHORT)], env=env, capture_output=True, text=True

@@ -21,7 +21,7 @@ from gmjax.filters.gsf import build_gsf
 from gmjax.reduction import PruneTop
 from gmjax.scenarios.jump_system import jump_system
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 MEDIAN_REL = (
     10 ** (1 / montecarlo.accumulate.HIST_BINS_PER_DECADE) - 1
 )  # the histogram median's stated accuracy

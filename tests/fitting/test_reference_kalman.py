@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import multivariate_normal
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from references import kalman_np  # noqa: E402
 

@@ -259,7 +259,7 @@ def test_birth_weights_must_be_existence_probabilities_and_a_key_is_needed():
 
 # the code block of the GM-LMB section of docs/reproductions/phd.md, verbatim (that page is not run by
 # tests/test_docs_examples.py, so it runs here; the test checks the page still shows this code)
-DOCS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "reproductions" / "phd.md"
+DOCS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "reproductions" / "phd.md"
 DOCS_SNIPPET = """\
 import jax
 from gmjax import multitarget as mt

@@ -59,7 +59,7 @@ def test_clutter_capacity_refuses_bad_arguments():
         mt.clutter_capacity(5.0, 3, overflow_prob=0.0)
 
 
-DOCS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "reproductions" / "phd.md"
+DOCS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "reproductions" / "phd.md"
 
 
 def _docs_block(heading: str) -> str:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.special import logsumexp
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from references import gm_noise_np, kalman_np  # noqa: E402
 

@@ -16,7 +16,7 @@ from gmjax.mixture import GaussianMixture
 from gmjax.multitarget import cphd, phd
 from references import cphd_np
 
-DOCS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "reproductions" / "phd.md"
+DOCS_PAGE = Path(__file__).resolve().parents[2] / "docs" / "reproductions" / "phd.md"
 
 
 def _gm(weights, means, covs, mask=None, dtype=jnp.float64):

@@ -28,7 +28,7 @@ from gmjax.reduction.gmrcm import GMRCM, GMRCMState, gmrcm, init_state
 from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.pcm import PCM, pcm
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from references import pcm_numpy as ref  # noqa: E402
 
 # the search's parts, by module (the package `gmjax.reduction` exports a function named `eise`)
