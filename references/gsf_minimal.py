@@ -71,7 +71,24 @@ def _cho_solve(L, b):
 
 
 def _logdet(P):
-    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(_chol(P), axis1=-2, axis2=-1)), -1)
+    """``log det P``: for ``d <= 4`` the logs of the ``L D L^T`` pivots (no square roots: 2-3x faster
+    than the logs of a Cholesky diagonal under ``vmap``, as ``gmjax.gaussian.spd_logdet``)."""
+    d = P.shape[-1]
+    if d > 4:
+        return 2.0 * jnp.sum(jnp.log(jnp.diagonal(_chol(P), axis1=-2, axis2=-1)), -1)
+    unit = [[None] * d for _ in range(d)]
+    pivots = []
+    for j in range(d):
+        dj = P[..., j, j] - sum(
+            (unit[j][k] * unit[j][k] * pivots[k] for k in range(j)), jnp.zeros_like(P[..., 0, 0])
+        )
+        pivots.append(dj)
+        for i in range(j + 1, d):
+            v = P[..., i, j] - sum(
+                (unit[i][k] * unit[j][k] * pivots[k] for k in range(j)), jnp.zeros_like(dj)
+            )
+            unit[i][j] = v / dj
+    return sum((jnp.log(p) for p in pivots[1:]), jnp.log(pivots[0]))
 
 
 def _predict(f, F, log_w, m, P, t, q: Mix):

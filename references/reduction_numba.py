@@ -37,8 +37,9 @@ rounding:
   (``-1`` for padded ones). If more than ``capacity`` slots are live (a threshold stopped early),
   the heaviest are kept, heaviest first, not renormalised. Weights are used and returned as stored.
 * Log-determinants, inverses and quadratic forms use gmjax's closed forms for ``d <= 2`` and the
-  Cholesky elimination in gmjax's order above (except Runnalls' pair costs for ``d > 2``: the log
-  of the product of the LDL^T pivots, one log per pair; equal to rounding).
+  Cholesky elimination in gmjax's order above; log-determinants for ``d > 2`` as gmjax's, the logs
+  of the LDL^T pivots summed in pivot order (except Runnalls' pair costs: the log of the product
+  of the pivots, one log per pair; equal to rounding).
 
 Without numba the module still imports and runs as plain Python (``njit`` is then the identity and
 ``prange`` is ``range``); with numba, every public function's ``.py_func`` is the same code run by
@@ -117,18 +118,36 @@ def _cholesky_at(A, k, L):
 
 
 @register_jitable
+def _ldl_logdet_at(A, k, U):
+    """``sum_j log D_j`` over the pivots of the ``L D L^T`` elimination of ``A[k]`` (gmjax's
+    ``spd_logdet`` for ``3 <= d <= 6``: unit lower factor into ``U``, logs summed in pivot order;
+    NaN where a pivot is not positive)."""
+    d = U.shape[0]
+    s = 0.0
+    for j in range(d):
+        dj = A[k, j, j]
+        for q in range(j):
+            dj -= U[j, q] * U[j, q] * U[q, q]
+        U[j, j] = dj  # the pivots on U's diagonal
+        for i in range(j + 1, d):
+            v = A[k, i, j]
+            for q in range(j):
+                v -= U[i, q] * U[j, q] * U[q, q]
+            U[i, j] = v / dj
+        s += math.log(dj) if dj > 0 else math.nan
+    return s
+
+
+@register_jitable
 def _logdet_at(P, k, L):
-    """``log det P[k]`` (gmjax's ``spd_logdet``: closed form for ``d <= 2``, else Cholesky into ``L``)."""
+    """``log det P[k]`` (gmjax's ``spd_logdet``: closed form for ``d <= 2``, else the ``L D L^T``
+    pivots' logs, scratch ``L``)."""
     d = L.shape[0]
     if d == 1:
         return math.log(P[k, 0, 0])
     if d == 2:
         return math.log(P[k, 0, 0] * P[k, 1, 1] - P[k, 0, 1] * P[k, 1, 0])
-    _cholesky_at(P, k, L)
-    s = 0.0
-    for i in range(d):
-        s += math.log(L[i, i])
-    return 2.0 * s
+    return _ldl_logdet_at(P, k, L)
 
 
 @register_jitable
@@ -175,17 +194,16 @@ def _logdet_quad(S, x, L, r):
         ld = math.log(a * e - b * S[0, 1, 0])
         det = a * e - b * b
         return ld, (e * x[0] * x[0] - 2.0 * b * x[0] * x[1] + a * x[1] * x[1]) / det
+    ld = _ldl_logdet_at(S, 0, L)
     _cholesky_at(S, 0, L)
-    ld = 0.0
     q = 0.0
     for i in range(d):  # forward substitution L r = x; x^T S^{-1} x = |r|^2
-        ld += math.log(L[i, i])
         acc = x[i]
         for k in range(i):
             acc -= L[i, k] * r[k]
         r[i] = acc / L[i, i]
         q += r[i] * r[i]
-    return 2.0 * ld, q
+    return ld, q
 
 
 @register_jitable

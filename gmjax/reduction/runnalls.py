@@ -73,7 +73,9 @@ def _runnalls(gm, num_out, threshold, capacity):
     return core(gm, threshold)
 
 
-def _runnalls_core(gm, num_out, threshold, capacity):
+def _initial_costs(gm: GaussianMixture) -> tuple[Array, Array]:
+    """The loop's start: the clean ``(K, K)`` pair-cost matrix (:func:`clean_upper`) and every
+    slot's ``log det P`` ``(K,)``."""
     w = jnp.where(gm.mask, gm.weights, 0.0)
     ld = gaussian.spd_logdet(gm.covs)
     C = runnalls_cost(
@@ -86,12 +88,17 @@ def _runnalls_core(gm, num_out, threshold, capacity):
         ld[:, None],
         ld[None, :],
     )
+    return clean_upper(C, gm.mask), ld
+
+
+def _runnalls_core(gm, num_out, threshold, capacity):
+    C, ld = _initial_costs(gm)
 
     def row_cost(s, i):  # log-determinants carried: only the merged slot's is new
         return runnalls_cost(s.w[i], s.m[i], s.P[i], s.w, s.m, s.P, s.logdet[i], s.logdet)
 
     body, n_steps = greedy_steps(gm, num_out, threshold, upper_argmin, row_cost)
-    s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, clean_upper(C, gm.mask), ld))
+    s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, C, ld))
     return finish(gm, s, n_steps, capacity)
 
 
