@@ -1,10 +1,13 @@
-"""The compiled per-mixture loop as the speed limit for the expensive reducers (issue 46, items 1-2).
+"""The compiled per-mixture loop as the speed limit for the expensive reducers (issue 46).
 
 gmjax's batched reducers (``jax.jit(jax.vmap(reducer))``, as ``bench_reduction.py`` calls them:
 Runnalls, West (KL) and GMRC) against the same reductions written as numba ``@njit`` per-mixture
 loops with a ``prange`` batch driver (``references/reduction_numba.py``: cached log-determinants,
 one cost row/column refreshed per merge — the strong baseline), on 1000 random mixtures of 60
-components reduced to 20, d = 1, 2, 4, float64. Mixtures as seed 000's 30-component case
+components reduced to 20, d = 1, 2, 4, float64. PCM with the grid search of ``λ`` (seed 000;
+``reduction.pcm(max_components=20, capacity=20, newton_steps=0)``, the 11-point grid on [1, 3])
+against ``references/pcm_numba.py`` (the ``λ``-independent parts once per mixture, a grid point
+with the previous one's judgment matrix or partition not costed again). Mixtures as seed 000's 30-component case
 (w in [1e-2, 0.2] normalised, x in [-2, 4]^d, sigma in [0.4, 1] per axis of a random rotation).
 
 Timing (``_common.time_alternating``): the first call of each program (compile + run) apart from
@@ -15,17 +18,23 @@ the batch as a ``vmap`` over the mixtures, one core: each merge step (the select
 min-reduction of the cost matrices, the merge, one cost row/column) runs for every mixture at once;
 numba's ``prange`` uses every core (``numba.get_num_threads()``), so the one-thread column is the
 per-core comparison. The outputs are checked equal (max abs difference of weights, means,
-covariances; same merge sequence / k-means iteration count).
+covariances; same merge sequence / k-means iteration count; PCM: same labels and ``λ*``, except
+*ties*: grid points whose clusterings are the same partition under other head rows have the same
+EISE, and gmjax's ``argmin`` picks among them by rounding; a tie counts as equal when the partition,
+the EISE and the mixture up to slot order agree, and the ties are counted).
 
-Where gmjax's time goes (``--decompose``, Runnalls only): the same batch reduced to 60 (no merge),
-40 (20 merges) and 20 (40 merges) components, so ``(t(20) - t(60)) / 40`` is the cost of one merge
-step and ``t(60)`` the fixed part (the initial cost matrix, compaction), for both implementations.
+Where the time goes (Runnalls only; ``--no-decompose`` skips it): the fixed part (the initial cost
+matrix, the copy out) and the cost of one merge step. numba: the batch reduced to 60 (no merge) and to
+20, ``(t(20) - t(60)) / 40`` per merge. gmjax: a reduction to 60 has no merge step and XLA drops its
+unused cost matrix, so the fixed part is ``runnalls._initial_costs`` timed alone plus ``t(60)``.
 
-Not done here: the GSF per run-step with Runnalls(20) against a GSF whose reduction is the numba loop
-(see the issue; a numba reduction inside a jitted ``lax.scan`` would need a host callback per step).
+The GSF per run-step against the whole R-GSF as a numba loop: ``bench_gsf_numba.py``.
 
-Usage: ``python benchmarks/bench_reducer_limit.py [--quick] [--batch 1000] [--repeats 3]``
-(or ``gmjax bench reducer_limit``). Needs numba (``pip install -e .[bench]``).
+Usage: ``python benchmarks/bench_reducer_limit.py [--quick] [--batch 1000] [--repeats 3]
+[--reducers pcm ...]`` (or ``gmjax bench reducer_limit``). Needs numba (``pip install -e .[bench]``).
+With ``--reducers`` naming some of the reducers, the rows measured replace those of the same
+reducer and d in ``results/reducer_limit.json`` and the other rows are kept (the run's date and load
+recorded under ``partial_runs``); the Runnalls split (``--decompose``) is kept unless Runnalls runs.
 """
 
 from __future__ import annotations
@@ -50,6 +59,7 @@ from _common import markdown_table, time_alternating, write_results  # noqa: E40
 
 from gmjax import reduction as R  # noqa: E402
 from gmjax.mixture import GaussianMixture  # noqa: E402
+from references import pcm_numba as pn  # noqa: E402
 from references import reduction_numba as rn  # noqa: E402
 
 try:
@@ -73,17 +83,59 @@ def draw(rng, B, K, d):
     return w, m, P
 
 
+# --reducers names -> row names
+REDUCERS = {"runnalls": "runnalls", "west": "west (KL)", "gmrc": "gmrc", "pcm": "pcm (grid)"}
+
+
 def _reducers(num_out):
     """name -> (gmjax per-mixture fn, numba batch call ``f(w, m, P)``)."""
     return {
         "runnalls": (lambda g: R.runnalls(g, num_out), lambda w, m, P: rn.runnalls_batch(w, m, P, num_out)),
         "west (KL)": (lambda g: R.west(g, num_out), lambda w, m, P: rn.west_batch(w, m, P, num_out)),
         "gmrc": (lambda g: R.gmrc(g, num_out), lambda w, m, P: rn.gmrc_batch(w, m, P, num_out)),
+        "pcm (grid)": (
+            lambda g: R.pcm(g, max_components=num_out, capacity=num_out, newton_steps=0),
+            lambda w, m, P: pn.pcm_batch(w, m, P, num_out, num_out),
+        ),
     }
 
 
+def _by_lowest_slot(w, m, P, mask, labels):
+    """One mixture's live output slots ordered by the lowest input slot of their cluster, and the
+    labels renamed to that order (an output's layout with the choice of head rows taken out)."""
+    slots = [p for p in np.flatnonzero(mask) if (labels == p).any()]
+    order = sorted(slots, key=lambda p: int(np.flatnonzero(labels == p)[0]))
+    rename = np.full(len(mask) + 1, -1)
+    rename[order] = np.arange(len(order))
+    return w[order], m[order], P[order], rename[labels]
+
+
+def _check_pcm(out, info, r):
+    """PCM: ``(max abs diff, same, ties)``. A mixture with another ``λ*`` is a tie when its EISE
+    agrees to 1e-12 and its partition and mixture agree once the slots are ordered by their lowest
+    input slot (the same partition found at two grid points under other head rows)."""
+    got = [np.asarray(a) for a in (out.weights, out.means, out.covs, out.mask, info.labels)]
+    lam = np.asarray(info.aux["lambda"])
+    same = bool(np.abs(np.asarray(info.cost) - r[6]).max() <= 1e-12)
+    diff, ties = 0.0, 0
+    for b in range(lam.shape[0]):
+        if lam[b] == r[5][b]:
+            same &= bool((got[3][b] == r[3][b]).all() and (got[4][b] == r[4][b]).all())
+            diff = max(diff, *(float(np.abs(got[k][b] - r[k][b]).max()) for k in range(3)))
+            continue
+        ties += 1
+        ours = _by_lowest_slot(*(a[b] for a in r[:5]))
+        theirs = _by_lowest_slot(*(a[b] for a in got))
+        same &= ours[3].shape == theirs[3].shape and bool((ours[3] == theirs[3]).all())
+        if same:
+            diff = max(diff, *(float(np.abs(x - y).max()) for x, y in zip(ours[:3], theirs[:3])))
+    return diff, same, ties
+
+
 def _check(name, out, info, r):
-    """Max abs output difference and whether the discrete results agree."""
+    """Max abs output difference, whether the discrete results agree, and (PCM) the ties."""
+    if name == "pcm (grid)":
+        return _check_pcm(out, info, r)
     diff = max(
         float(np.abs(np.asarray(out.weights) - r[0]).max()),
         float(np.abs(np.asarray(out.means) - r[1]).max()),
@@ -94,7 +146,7 @@ def _check(name, out, info, r):
         same &= bool((np.asarray(info.aux["iterations"]) == r[5]).all())
     else:
         same &= bool((np.asarray(info.aux["merges"]) == r[5]).all())
-    return diff, same
+    return diff, same, 0
 
 
 def _with_threads(n, fn):
@@ -122,7 +174,7 @@ def run_case(name, jfn, nfn, w, m, P, repeats, threads):
         repeats=repeats,
     )
     out, info = kernel(gm)
-    diff, same = _check(name, out, info, nfn(w, m, P))
+    diff, same, ties = _check(name, out, info, nfn(w, m, P))
     us = 1e6 / B
     return {
         "gmjax_us": t_g["run_median_s"] * us,
@@ -137,11 +189,19 @@ def run_case(name, jfn, nfn, w, m, P, repeats, threads):
         "numba_compile_s": t_n["compile_s"],
         "max_abs_diff": diff,
         "same_discrete": same,
+        "ties": ties,
     }
 
 
 def decompose(w, m, P, repeats, threads):
-    """Runnalls reduced to 60 / 40 / 20 components: fixed cost and cost per merge step."""
+    """Runnalls' fixed cost and cost per merge step.
+
+    numba: the batch reduced to 60 (no merge: the cost matrix, the copy out) and to 20. gmjax: a
+    reduction to 60 has no merge step, so XLA drops the unused cost matrix from that program; its
+    fixed part is timed as the initial cost matrix (``runnalls._initial_costs``, what the loop
+    starts from) plus the reduction to 60 (the copy out)."""
+    from gmjax.reduction import runnalls as runnalls_module
+
     B = w.shape[0]
     gm = GaussianMixture(jnp.asarray(w), jnp.asarray(m), jnp.asarray(P), jnp.ones(w.shape, bool))
     rows = {}
@@ -151,26 +211,36 @@ def decompose(w, m, P, repeats, threads):
             [lambda: kernel(gm), _with_threads(1, lambda: rn.runnalls_batch(w, m, P, n_out))], repeats=repeats
         )
         rows[n_out] = (t_g["run_median_s"] * 1e6 / B, t_1["run_median_s"] * 1e6 / B)
+    costs = jax.jit(jax.vmap(runnalls_module._initial_costs))
+    (t_c,) = time_alternating([lambda: costs(gm)], repeats=repeats)
+    gmjax_fixed = t_c["run_median_s"] * 1e6 / B + rows[K_IN][0]
     n_merges = K_IN - NUM_OUT
     return {
         "us_per_mixture": {str(k): {"gmjax": v[0], "numba_1t": v[1]} for k, v in rows.items()},
-        "gmjax_fixed_us": rows[K_IN][0],
-        "gmjax_us_per_merge": (rows[NUM_OUT][0] - rows[K_IN][0]) / n_merges,
+        "gmjax_cost_matrix_us": t_c["run_median_s"] * 1e6 / B,
+        "gmjax_fixed_us": gmjax_fixed,
+        "gmjax_us_per_merge": (rows[NUM_OUT][0] - gmjax_fixed) / n_merges,
         "numba_1t_fixed_us": rows[K_IN][1],
         "numba_1t_us_per_merge": (rows[NUM_OUT][1] - rows[K_IN][1]) / n_merges,
     }
 
 
-def render(data):
-    load0, load1 = data["loadavg_before"], data["loadavg_after"]
-    th = data["numba_threads"]
-    loaded = float(load0[0]) > 0.75 * data["cpu_count"]  # before: the run itself loads a core
-    load_note = (
+def _load_note(load0, cpu_count):
+    # the load averages before the run (the run itself loads a core): the 1-minute one, or the
+    # 5-minute one when other work has just paused
+    loaded = max(float(load0[0]), float(load0[1])) > 0.75 * cpu_count
+    return (
         "The machine was loaded (another session's work on the same cores), so compare the ratios "
         "(measured in alternating rounds in one process) rather than absolute times."
         if loaded
         else "The machine was otherwise quiet."
     )
+
+
+def render(data):
+    load0, load1 = data["loadavg_before"], data["loadavg_after"]
+    th = data["numba_threads"]
+    load_note = _load_note(load0, data["cpu_count"])
     md = [
         f"# Compiled per-mixture loops (numba) vs gmjax's batched reducers, {data['batch']} mixtures "
         f"{K_IN} -> {NUM_OUT}, float64",
@@ -184,6 +254,14 @@ def render(data):
         "and the `1 thread` columns are the per-core comparison.",
         "",
     ]
+    for run in data.get("partial_runs", []):
+        md += [
+            f"Rows of {', '.join(run['reducers'])} (d = {', '.join(str(d) for d in run['dims'])}) measured "
+            f"separately, {run['date']}: {run['batch']} mixtures, load average {' '.join(run['loadavg_before'])} "
+            f"before and {' '.join(run['loadavg_after'])} after. {_load_note(run['loadavg_before'], data['cpu_count'])} "
+            f"Median of {run['repeats']} rounds; numba `prange` on {run['numba_threads']} threads.",
+            "",
+        ]
     header = [
         "d",
         "reducer",
@@ -211,7 +289,7 @@ def render(data):
                 r["gmjax_compile_s"],
                 r["numba_compile_s"],
                 f"{r['max_abs_diff']:.1e}",
-                r["same_discrete"],
+                f"{r['same_discrete']} ({r['ties']} ties)" if r.get("ties") else r["same_discrete"],
             ]
         )
     md += [markdown_table(header, rows), ""]
@@ -219,7 +297,12 @@ def render(data):
         "The 1-thread columns compare one core with one core. numba compile time: the first call of that reducer's batch driver (every reducer's driver "
         "compiles its own copy of the shared helpers; a d that reuses an already compiled signature "
         "shows ~0). `same merges`: identical output masks, labels and merge sequence (GMRC: k-means "
-        "iteration count).",
+        "iteration count; PCM: labels and the chosen λ). PCM (grid) is `reduction.pcm(max_components=20, "
+        "capacity=20, newton_steps=0)` (11-point grid of λ on [1, 3], CI merge) against "
+        "`references/pcm_numba.py`; a PCM *tie* is a mixture where two grid points give the same partition "
+        "under other head rows (so another output order) with the same EISE, and gmjax's `argmin` picks "
+        "the later one by rounding while the loop keeps the first: counted equal when the partition, the "
+        "EISE (to 1e-12) and the mixture up to slot order agree.",
         "",
     ]
     if data.get("decompose"):
@@ -228,6 +311,7 @@ def render(data):
             dec_rows.append(
                 [
                     d,
+                    v.get("gmjax_cost_matrix_us", float("nan")),
                     v["gmjax_fixed_us"],
                     v["gmjax_us_per_merge"],
                     v["numba_1t_fixed_us"],
@@ -238,19 +322,20 @@ def render(data):
         md += [
             "## Where gmjax's Runnalls time goes",
             "",
-            f"The same batch reduced to {K_IN} (no merge) and {NUM_OUT} ({K_IN - NUM_OUT} merges): fixed "
-            "part (the initial cost matrix, compaction) and the cost of one merge step (selection, merge, "
-            "one cost row/column), µs per mixture; numba on one thread. gmjax's fixed part is the smaller: "
-            "XLA evaluates the whole K x K cost matrix as one vectorised kernel (SIMD, vectorised log), while "
-            "the numba loop pays a scalar libm log per pair (pip's llvmlite has no SVML). gmjax's merge "
-            "step batches over the mixtures: its selection is one min-reduction over the K x K costs "
-            "(O(K^2) against numba's O(K) scan of cached row minima) and its cost row reads every slot's "
-            "d x d covariance for the unrolled Cholesky, so its cost per merge grows with d faster than "
-            "numba's.",
+            f"The fixed part (the initial cost matrix, the copy out) and the cost of one merge step "
+            "(selection, merge, one cost row/column), µs per mixture; numba on one thread. numba: the batch "
+            f"reduced to {K_IN} (no merge) and to {NUM_OUT}, per merge (t({NUM_OUT}) - t({K_IN})) / "
+            f"{K_IN - NUM_OUT}. gmjax: a reduction to {K_IN} has no merge step and XLA drops its unused cost "
+            "matrix, so the fixed part is the initial cost matrix (`runnalls._initial_costs`, timed alone) "
+            f"plus the reduction to {K_IN}, per merge (t({NUM_OUT}) - fixed) / {K_IN - NUM_OUT}. (Until "
+            f"2026-12-07 gmjax's fixed part was t({K_IN}) alone: it missed the cost matrix and counted its "
+            "time in the merge steps.) gmjax evaluates all K x K pair costs (both triangles: one broadcast "
+            "kernel), numba the upper triangle.",
             "",
             markdown_table(
                 [
                     "d",
+                    "gmjax cost matrix µs",
                     "gmjax fixed µs",
                     "gmjax µs / merge",
                     "numba fixed µs",
@@ -262,11 +347,42 @@ def render(data):
             "",
         ]
     md += [
-        "Not measured: the GSF per run-step with Runnalls(20) against a GSF whose reduction is the numba "
-        "loop (a numba reduction inside gmjax's jitted `lax.scan` needs a host callback per step; left to "
-        "a later item).",
+        "The R-GSF per run-step against the whole R-GSF as a numba loop (EKF components and this Runnalls "
+        "loop): `results/gsf_numba.md` (`bench_gsf_numba.py`).",
     ]
     return "\n".join(md)
+
+
+def _merge_into_previous(data, names, dims, quick):
+    """A run of some reducers: its rows replace those of the same (d, reducer) in the previous
+    results file, whose other rows, header data and Runnalls split are kept; the run is recorded
+    in ``partial_runs``. Without a previous file the run's own data is returned."""
+    import json
+
+    from _common import RESULTS_DIR
+
+    path = RESULTS_DIR / f"reducer_limit{'_quick' if quick else ''}.json"
+    if not path.exists():
+        return data
+    old = json.loads(path.read_text())
+    for key in ("benchmark", "machine"):
+        old.pop(key, None)  # write_results sets them again
+    new_keys = {(r["d"], r["reducer"]) for r in data["rows"]}
+    order = list(REDUCERS.values())
+    rows = [r for r in old["rows"] if (r["d"], r["reducer"]) not in new_keys] + data["rows"]
+    old["rows"] = sorted(rows, key=lambda r: (r["d"], order.index(r["reducer"])))
+    if data["decompose"]:
+        old["decompose"] = data["decompose"]
+    run = {
+        k: data[k] for k in ("date", "batch", "repeats", "numba_threads", "loadavg_before", "loadavg_after")
+    }
+    run.update(reducers=names, dims=dims, wall_s=data["wall_s"])
+    old["partial_runs"] = [
+        p
+        for p in old.get("partial_runs", [])
+        if not (set(p["reducers"]) <= set(names) and set(p["dims"]) <= set(dims))
+    ] + [run]
+    return old
 
 
 def main(argv=None):
@@ -277,6 +393,13 @@ def main(argv=None):
     p.add_argument("--dims", type=int, nargs="+", default=None, help="dimensions (default 1 2 4)")
     p.add_argument("--no-decompose", action="store_true", help="skip the fixed / per-merge split")
     p.add_argument("--render", action="store_true", help="rewrite reducer_limit.md from reducer_limit.json")
+    p.add_argument(
+        "--reducers",
+        nargs="+",
+        choices=sorted(REDUCERS),
+        default=None,
+        help="run only these (default all); their rows replace those in results/reducer_limit.json",
+    )
     args = p.parse_args(argv)
     if args.render:
         import json
@@ -291,6 +414,7 @@ def main(argv=None):
         raise SystemExit("bench_reducer_limit needs numba: pip install numba (or pip install -e .[bench])")
     B = args.batch or (50 if args.quick else 1000)
     dims = args.dims or ([2] if args.quick else [1, 2, 4])
+    names = [REDUCERS[k] for k in REDUCERS if args.reducers is None or k in args.reducers]
     threads = numba.get_num_threads()
     date = subprocess.run(["date"], capture_output=True, text=True).stdout.strip()
     with open("/proc/loadavg") as f:
@@ -301,6 +425,8 @@ def main(argv=None):
     for d in dims:
         w, m, P = draw(rng, B, K_IN, d)
         for name, (jfn, nfn) in _reducers(NUM_OUT).items():
+            if name not in names:
+                continue
             r = {"d": d, "reducer": name, **run_case(name, jfn, nfn, w, m, P, args.repeats, threads)}
             rows.append(r)
             print(
@@ -310,7 +436,7 @@ def main(argv=None):
                 f"max |diff| {r['max_abs_diff']:.1e}, same {r['same_discrete']}",
                 flush=True,
             )
-        if not args.no_decompose:
+        if not args.no_decompose and "runnalls" in names:
             dec[str(d)] = decompose(w, m, P, args.repeats, threads)
             v = dec[str(d)]
             print(
@@ -338,6 +464,8 @@ def main(argv=None):
         "decompose": dec,
         "gsf_comparison": "not done",
     }
+    if len(names) < len(REDUCERS):
+        data = _merge_into_previous(data, names, dims, args.quick)
     md = render(data)
     path = write_results("reducer_limit", data, md, quick=args.quick)
     print(md)
