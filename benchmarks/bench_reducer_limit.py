@@ -200,7 +200,9 @@ def decompose(w, m, P, repeats, threads):
     reduction to 60 has no merge step, so XLA drops the unused cost matrix from that program; its
     fixed part is timed as the initial cost matrix (``runnalls._initial_costs``, what the loop
     starts from) plus the reduction to 60 (the copy out)."""
-    from gmjax.reduction import runnalls as runnalls_module
+    import importlib
+
+    runnalls_module = importlib.import_module("gmjax.reduction.runnalls")  # the package binds the function
 
     B = w.shape[0]
     gm = GaussianMixture(jnp.asarray(w), jnp.asarray(m), jnp.asarray(P), jnp.ones(w.shape, bool))
