@@ -1020,3 +1020,43 @@ def test_gmrcm_search_and_config_protocol():
     np.testing.assert_allclose(out2.weights, out.weights, rtol=1e-12)
     with pytest.raises(ValueError, match="state"):
         gmrcm(gm, GMRCMState(jnp.zeros(3, jnp.int32)))
+
+
+def test_grid_ties_pick_the_first_lambda_alone_and_under_vmap():
+    """Two grid points that give the same partition under other head rows have the same EISE up to
+    the summation order; the search keeps the first (smallest ``λ``), as exact arithmetic and the
+    numba loop do, so a mixture gets the same ``λ`` alone and under vmap. Mixtures 139 and 968 of
+    ``bench_reducer_limit``'s 1-D draw are such ties (a plain ``argmin`` gave ``λ = 3.0`` under vmap
+    for both, 1.8 and 2.6 alone)."""
+    from references import pcm_numba
+
+    rng = np.random.default_rng(46)  # bench_reducer_limit.draw(rng, 1000, 60, 1)
+    B, K = 1000, 60
+    w = rng.uniform(1e-2, 0.2, (B, K))
+    w /= w.sum(1, keepdims=True)
+    m = rng.uniform(-2.0, 4.0, (B, K, 1))
+    q, _ = np.linalg.qr(rng.normal(size=(B, K, 1, 1)))
+    s2 = rng.uniform(0.4, 1.0, (B, K, 1)) ** 2
+    P = np.einsum("bkij,bkj,bklj->bkil", q, s2, q)
+    pick = [139, 968, 0]  # two ties and an ordinary mixture
+    w, m, P = w[pick], m[pick], 0.5 * (P[pick] + np.swapaxes(P[pick], -1, -2))
+    gms = GaussianMixture(jnp.asarray(w), jnp.asarray(m), jnp.asarray(P), jnp.ones(w.shape, bool))
+    reduce = partial(pcm, max_components=20, capacity=20, newton_steps=0)
+    _, batched = jax.jit(jax.vmap(reduce))(gms)
+    for b in range(len(pick)):
+        _, alone = jax.jit(reduce)(jax.tree_util.tree_map(lambda a: a[b], gms))
+        loop = pcm_numba.pcm.py_func(w[b], m[b], P[b], 20, 20)
+        assert float(alone.aux["lambda"]) == float(batched.aux["lambda"][b]) == loop[5]
+        np.testing.assert_array_equal(alone.labels, batched.labels[b])
+    assert [float(x) for x in batched.aux["lambda"][:2]] == [1.8, 2.6]
+
+
+def test_first_minimiser_keeps_the_first_of_values_equal_to_rounding():
+    first = eise_search._first_minimiser
+    values = jnp.asarray([3.0, 1.0 + 4e-16, 2.0, 1.0, 1.0 + 1e-9])
+    assert int(first(values, 60)) == 1  # within 60 eps of the minimum: the first such point
+    assert int(first(values, 1)) == 3  # a tolerance of one ulp: the exact minimum
+    assert int(first(jnp.asarray([2.0, jnp.nan, 1.0]), 60)) == int(
+        jnp.argmin(jnp.asarray([2.0, jnp.nan, 1.0]))
+    )
+    assert int(first(jnp.asarray([0.0, 0.0, -0.0]), 60)) == 0

@@ -212,6 +212,19 @@ def _fixed_result(
     )
 
 
+def _first_minimiser(values: Array, n_terms: int) -> Array:
+    """The first grid point whose EISE is the smallest up to rounding: within ``n_terms · eps`` of
+    the minimum, relative (a sum of ``n_terms`` non-negative cluster terms in another order differs
+    by less). Two grid points can give the same partition under other head rows, so their EISE
+    differ only by the summation order, and a plain ``argmin`` would pick between them by rounding,
+    differently under ``vmap`` than alone; the smallest such ``λ`` is kept, as exact arithmetic
+    would. A NaN EISE is picked as ``argmin`` picks it."""
+    at_min = jnp.argmin(values)
+    smallest = values[at_min]
+    near = values <= smallest + n_terms * jnp.finfo(values.dtype).eps * jnp.abs(smallest)
+    return jnp.where(jnp.any(near), jnp.argmax(near), at_min)
+
+
 @jax.jit
 def search_confidence(gm: GaussianMixture, search: ConfidenceSearch) -> SearchResult:
     """Search the confidence multiplier ``λ`` minimising the EISE (seed 000 Table 1 step 7).
@@ -271,7 +284,7 @@ def search_confidence(gm: GaussianMixture, search: ConfidenceSearch) -> SearchRe
     # all grid clusterings in one overlap sweep, then the grid's merges and EISEs side by side
     grid_clusters = cluster(gm, grid, delta, dist, range_scale)
     grid_eise, grid_labels, grid_merged, grid_counts = jax.vmap(evaluate_labels)(grid_clusters.labels)
-    best = jnp.argmin(grid_eise)
+    best = _first_minimiser(grid_eise, gm.capacity)
     lam_grid = grid[best]
     eise_grid = grid_eise[best]
     labels_grid = grid_labels[best]
