@@ -20,8 +20,9 @@ numba's ``prange`` uses every core (``numba.get_num_threads()``), so the one-thr
 per-core comparison. The outputs are checked equal (max abs difference of weights, means,
 covariances; same merge sequence / k-means iteration count; PCM: same labels and ``λ*``, except
 *ties*: grid points whose clusterings are the same partition under other head rows have the same
-EISE, and gmjax's ``argmin`` picks among them by rounding; a tie counts as equal when the partition,
-the EISE and the mixture up to slot order agree, and the ties are counted).
+EISE but for the summation order; gmjax keeps the first within ``K eps`` of the minimum, as the loop
+keeps the first, but until 620bbd7 its ``argmin`` picked among them by rounding; a tie counts as
+equal when the partition, the EISE and the mixture up to slot order agree, and the ties are counted).
 
 Where the time goes (Runnalls only; ``--no-decompose`` skips it): the fixed part (the initial cost
 matrix, the copy out) and the cost of one merge step. numba: the batch reduced to 60 (no merge) and to
@@ -302,8 +303,9 @@ def render(data):
         "iteration count; PCM: labels and the chosen λ). PCM (grid) is `reduction.pcm(max_components=20, "
         "capacity=20, newton_steps=0)` (11-point grid of λ on [1, 3], CI merge) against "
         "`references/pcm_numba.py`; a PCM *tie* is a mixture where two grid points give the same partition "
-        "under other head rows (so another output order) with the same EISE, and gmjax's `argmin` picks "
-        "the later one by rounding while the loop keeps the first: counted equal when the partition, the "
+        "under other head rows (so another output order) with the same EISE but for the summation order, "
+        "and gmjax picks another grid point than the loop (both keep the first, gmjax within K eps of the "
+        "minimum; until 620bbd7 its `argmin` picked by rounding): counted equal when the partition, the "
         "EISE (to 1e-12) and the mixture up to slot order agree.",
         "",
     ]

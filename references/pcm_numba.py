@@ -49,12 +49,13 @@ equal gmjax to rounding (sums are taken in slot order, XLA's in its own).
 
 **Ties.** The same partition can come out of two grid points under different head rows (so in
 another output order). Its EISE is then one number, and which grid point wins is a matter of
-rounding: gmjax sums the clusters in head order and its ``argmin`` can take the later point (and
-does so differently under ``vmap`` than for one mixture). Here each cluster's sums run over its
+rounding: gmjax sums the clusters in head order (it keeps the first point within ``K eps`` of the
+minimum; until 620bbd7 its ``argmin`` could take the later point, differently under ``vmap`` than
+for one mixture). Here each cluster's sums run over its
 members in slot order and the clusters are summed in the order of their lowest members, so a
 partition's EISE does not depend on its heads and the first grid point is kept: the choice exact
-arithmetic makes. Such a mixture has another ``λ*``, output order and labels than gmjax's, with the
-same EISE, partition and mixture (``tests/reduction/test_pcm_numba.py`` checks exactly that).
+arithmetic makes. Should the two still differ, the mixture has another ``λ*``, output order and
+labels than gmjax's, with the same EISE, partition and mixture (``tests/reduction/test_pcm_numba.py`` checks exactly that).
 
 Omitted: Newton's steps on the relaxed EISE (``newton_steps > 0``, the default of ``gmjax.pcm``),
 the relaxed modes (``"soft"``, ``"straight_through"``), a fixed ``lam``, the moment merge,

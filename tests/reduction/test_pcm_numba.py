@@ -9,10 +9,11 @@ grid and range scale. Outputs (weights, means, covariances), mask, labels, ``λ*
 gmjax's to 1e-12, with and without ``skip_repeats``.
 
 One exception is checked rather than excused: when two grid points give the same *partition* with
-different head rows (hence another output order), their EISE is the same number and gmjax's
-``argmin`` picks between them by rounding (differently under ``vmap`` than alone); the loop sums in
-an order independent of the heads and keeps the first. Then the partition, the EISE, and the output
-mixture up to the order of its slots must agree (:func:`_compare`).
+different head rows (hence another output order), their EISE is the same number but for the
+summation order; the loop sums in an order independent of the heads and keeps the first, gmjax keeps
+the first within ``K eps`` of the minimum (until 620bbd7 its plain ``argmin`` picked by rounding,
+differently under ``vmap`` than alone). Should they still differ, the partition, the EISE, and the
+output mixture up to the order of its slots must agree (:func:`_compare`).
 
 The default tests run the loop's ``.py_func`` (plain Python; numba need not be installed); the
 ``slow`` test runs the numba ``prange`` batch driver on a larger batch.
