@@ -62,31 +62,18 @@ import math
 
 import numpy as np
 
-try:  # pragma: no cover - exercised with and without numba
-    from numba import njit, prange
-    from numba.extending import register_jitable
-
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    HAVE_NUMBA = False
-    prange = range
-
-    def _identity_decorator(*args, **kwargs):
-        def wrap(f):
-            f.py_func = f
-            return f
-
-        if len(args) == 1 and callable(args[0]) and not kwargs:
-            return wrap(args[0])
-        return wrap
-
-    njit = _identity_decorator
-    register_jitable = _identity_decorator
-
+# numba's decorators, or plain-Python stand-ins without numba: reduction_numba's (one fallback)
 try:  # as the tests and benchmarks import it (the repository root on sys.path)
-    from references.reduction_numba import _cholesky_at, _runnalls_core
+    from references.reduction_numba import (
+        HAVE_NUMBA,
+        _cholesky_at,
+        _runnalls_core,
+        njit,
+        prange,
+        register_jitable,
+    )
 except ImportError:  # pragma: no cover - run from inside references/
-    from reduction_numba import _cholesky_at, _runnalls_core
+    from reduction_numba import HAVE_NUMBA, _cholesky_at, _runnalls_core, njit, prange, register_jitable
 
 __all__ = [
     "HAVE_NUMBA",
