@@ -27,7 +27,6 @@ import jax.numpy as jnp
 from gmjax import gaussian
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction.base import make_info
 
 # ----------------------------------------------------------------------------- the greedy loop
 
@@ -154,9 +153,7 @@ def init_state(gm, C, logdet=None, Pinv=None):
 
 def finish(gm, s, n_steps, capacity):
     work = GaussianMixture(s.w, s.m, s.P, s.mask)
-    out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
-    aux = {"merges": s.merges[:n_steps]}
-    return out, make_info(gm, out, labels, pruned_mass=dropped, overflow=overflow, cost=s.total, aux=aux)
+    return _util.finalize_info(gm, work, s.labels, capacity, cost=s.total, aux={"merges": s.merges[:n_steps]})
 
 
 # ----------------------------------------------------------------------------- batching

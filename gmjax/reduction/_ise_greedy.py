@@ -28,6 +28,14 @@ def overlap(ma, Pa, mb, Pb):
     return jnp.exp(gaussian.spd_logpdf(ma, mb, Pa + Pb))
 
 
+def self_term(gm: GaussianMixture, w0: jax.Array) -> jax.Array:
+    """``J_hh = sum_ij w_i w_j N(m_i; m_j, P_i + P_j)`` of the original mixture ``h`` (``w0``: its
+    weights, zero on empty slots); constant over the greedy loop."""
+    live2 = gm.mask[:, None] & gm.mask[None, :]
+    S = jnp.where(live2, overlap(gm.means[:, None], gm.covs[:, None], gm.means[None], gm.covs[None]), 0.0)
+    return w0 @ S @ w0
+
+
 class ISEGreedyState(NamedTuple):
     w: jax.Array
     m: jax.Array

@@ -6,13 +6,14 @@ Validation lives in :mod:`gmjax._validate`, the small-matrix algebra in :mod:`gm
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import jax
 import jax.numpy as jnp
 
 from gmjax import _validate, mixture
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction.base import ReductionInfo, make_info
 
 # ----------------------------------------------------------------------------- finalisation
 
@@ -59,6 +60,38 @@ def finalize(
     kept = jnp.zeros(Kw, bool).at[idx].set(valid)
     dropped = jnp.sum(jnp.where(work.mask & ~kept, work.weights, 0.0))
     return out, labels_out, overflow, dropped
+
+
+def finalize_info(
+    gm_in: GaussianMixture,
+    work: GaussianMixture,
+    labels: jax.Array,
+    capacity: int,
+    *,
+    cost: Any = 0.0,
+    aux: dict[str, Any] | None = None,
+    pruned_mass: Any = 0.0,
+    overflow: Any = False,
+) -> tuple[GaussianMixture, ReductionInfo]:
+    """A reducer's result from its working mixture: :func:`finalize` into ``capacity`` slots, then
+    the :class:`~gmjax.reduction.base.ReductionInfo` (:func:`~gmjax.reduction.base.make_info`).
+
+    The mass :func:`finalize` drops is added to ``pruned_mass`` and its overflow OR-ed with
+    ``overflow``; ``cost`` is a value or a function of the output mixture (e.g. its ISE to
+    ``gm_in``). Returns ``(gm_out, info)``.
+    """
+    out, labels_out, fin_overflow, dropped = finalize(gm_in, work, labels, capacity)
+    cost = cost(out) if callable(cost) else cost
+    info = make_info(
+        gm_in,
+        out,
+        labels_out,
+        pruned_mass=pruned_mass + dropped,
+        overflow=overflow | fin_overflow,
+        cost=cost,
+        aux=aux,
+    )
+    return out, info
 
 
 def identity_labels(gm: GaussianMixture) -> jax.Array:
@@ -136,6 +169,44 @@ def reduce_count_threshold(
     (threshold,), bad = replace_nans((threshold, float("inf")))
     num_out, threshold, cap = _validate.validate_count_threshold(gm, num_out, threshold, capacity)
     return unchanged_if_nan(bad, gm, core(gm, num_out, threshold, capacity=cap, **static))
+
+
+def count_threshold_reducer(core: Callable, name: str, doc: str) -> CountThresholdReducer:
+    """The public function ``name(gm, num_out, threshold=None, *, capacity=None, key=None)`` of a
+    greedy reducer with no other option (Runnalls, Salmond, COWA): one signature and one body
+    (:func:`reduce_count_threshold` over ``core``) for all of them, each module giving only its
+    ``core`` and its docstring ``doc`` (as diffrax's solvers are small classes over one engine).
+    """
+
+    def reducer(
+        gm: GaussianMixture,
+        num_out: int,
+        threshold: Any = None,
+        *,
+        capacity: int | None = None,
+        key: jax.Array | None = None,
+    ) -> tuple[GaussianMixture, ReductionInfo]:
+        del key
+        return reduce_count_threshold(core, gm, num_out, threshold, capacity)
+
+    reducer.__name__ = reducer.__qualname__ = name
+    reducer.__module__ = core.__module__
+    reducer.__doc__ = doc
+    return reducer
+
+
+class CountThresholdReducer(Protocol):
+    """The signature of a :func:`count_threshold_reducer` function."""
+
+    def __call__(
+        self,
+        gm: GaussianMixture,
+        num_out: int,
+        threshold: Any = None,
+        *,
+        capacity: int | None = None,
+        key: jax.Array | None = None,
+    ) -> tuple[GaussianMixture, ReductionInfo]: ...
 
 
 def either(*flags: jax.Array | None) -> jax.Array | None:

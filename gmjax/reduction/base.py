@@ -121,6 +121,21 @@ def calls(fn: Callable[..., tuple[GaussianMixture, ReductionInfo]]) -> Callable:
     return __call__
 
 
+def reduces_with_state(fn: Callable[..., tuple[GaussianMixture, Any, ReductionInfo]]) -> Callable:
+    """The ``reduce`` of a stateful reducer config that calls the reducer function ``fn`` with the
+    carried state and every field of the config by name: ``fn(gm, state, **fields, key=key)``
+    (the stateful counterpart of :func:`calls`)."""
+
+    def reduce(
+        self, gm: GaussianMixture, state: Any, *, key: PRNGKey | None = None
+    ) -> tuple[GaussianMixture, Any, ReductionInfo]:
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return fn(gm, state, **fields, key=key)
+
+    reduce.__doc__ = f"``{fn.__name__}(gm, state, **fields, key=key)``: ``(reduced, new_state, info)``."
+    return reduce
+
+
 class Stateless:
     """Mixin giving a stateless reducer config (one that defines ``__call__``, e.g. by
     :func:`calls`) the protocol."""

@@ -13,7 +13,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture, compact
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls
 from gmjax.reduction.merge import merge_labels
 
 __all__ = ["brute_force", "BruteForce", "set_partitions", "MAX_PARTITIONS"]
@@ -73,9 +73,8 @@ def _brute(gm, num_out, capacity, batch_size):
     # labels of the original slots: gmc slot r came from gm slot order[r]
     order = jnp.argsort(~gm.mask, stable=True)
     labels_in = jnp.zeros(gm.capacity, jnp.int32).at[order].set(lab)
-    out, labels, overflow, dropped = _util.finalize(gm, red, labels_in, capacity)
     cost = vals[best] * scale * scale  # the ISE of the weights as given (may underflow to 0)
-    return out, make_info(gm, out, labels, overflow=overflow, pruned_mass=dropped, cost=cost)
+    return _util.finalize_info(gm, red, labels_in, capacity, cost=cost)
 
 
 def brute_force(

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 from functools import partial
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -15,8 +14,8 @@ from gmjax._types import Array
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.reduction.base import CountThreshold, ReductionInfo, calls, make_info
+from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, self_term
+from gmjax.reduction.base import CountThreshold, calls
 from gmjax.reduction.west import west_distance
 
 __all__ = ["cowa", "optimal_weights", "COWA"]
@@ -68,15 +67,7 @@ def _cowa(gm, num_out, threshold, capacity):
     eye = jnp.eye(d, dtype=gm.covs.dtype)
     w0 = jnp.where(gm.mask, gm.weights, 0.0)
     total0 = jnp.sum(w0)
-    Jhh = (
-        w0
-        @ jnp.where(
-            gm.mask[:, None] & gm.mask[None, :],
-            overlap(gm.means[:, None], gm.covs[:, None], gm.means[None], gm.covs[None]),
-            0.0,
-        )
-        @ w0
-    )
+    Jhh = self_term(gm, w0)
 
     def body(step, s):
         # enhanced-West selection: smallest w / det P, merged with its ISE-nearest neighbour
@@ -118,26 +109,13 @@ def _cowa(gm, num_out, threshold, capacity):
     s0 = initial_state(gm, w0, n_steps)
     s = jax.lax.fori_loop(0, n_steps, body, s0)
     work = GaussianMixture(s.w, s.m, s.P, s.mask)
-    out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
-    return out, make_info(
-        gm,
-        out,
-        labels,
-        overflow=overflow,
-        pruned_mass=dropped,
-        cost=ise(gm, out),
-        aux={"actions": s.actions[:n_steps]},
-    )
+    cost = partial(ise, gm)  # the output's ISE to the input
+    return _util.finalize_info(gm, work, s.labels, capacity, cost=cost, aux={"actions": s.actions[:n_steps]})
 
 
-def cowa(
-    gm: GaussianMixture,
-    num_out: int,
-    threshold: Any = None,
-    *,
-    capacity: int | None = None,
-    key: jax.Array | None = None,
-) -> tuple[GaussianMixture, ReductionInfo]:
+cowa = _util.count_threshold_reducer(
+    _cowa,
+    "cowa",
     """Constraint-optimised weight adaptation (Chen, Chang & Smith 2010, SPIE 7697).
 
     Each step merges the component with the smallest ``w / det P`` into its ISE-nearest neighbour
@@ -148,9 +126,8 @@ def cowa(
     "weight adaptation after every merge" with an active-set solution of its constrained QP.
 
     Arguments as in :func:`williams` (``threshold`` is an ISE bound, may be traced).
-    """
-    del key
-    return _util.reduce_count_threshold(_cowa, gm, num_out, threshold, capacity)
+    """,
+)
 
 
 @pytree_dataclass

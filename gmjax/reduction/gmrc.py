@@ -12,7 +12,7 @@ from gmjax import _validate, gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
+from gmjax.reduction.base import ReductionInfo, Stateless, calls
 from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.runnalls import _runnalls
 
@@ -64,17 +64,9 @@ def _gmrc(gm, num_out, max_iter, capacity):
     )
     s = jax.lax.while_loop(cond, body, s0)
     merged = merge_labels(gm, s.labels, num_out, "moment")
-    out, labels, overflow, dropped = _util.finalize(gm, merged, s.labels, capacity)
     cost = kl_upper_bound(gm, merged, s.labels)
-    return out, make_info(
-        gm,
-        out,
-        labels,
-        overflow=overflow,
-        pruned_mass=dropped,
-        cost=cost,
-        aux={"iterations": s.it, "converged": s.done},
-    )
+    aux = {"iterations": s.it, "converged": s.done}
+    return _util.finalize_info(gm, merged, s.labels, capacity, cost=cost, aux=aux)
 
 
 def gmrc(

@@ -39,7 +39,7 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
-from gmjax.reduction.base import ReductionInfo, make_info
+from gmjax.reduction.base import ReductionInfo, make_info, reduces_with_state
 from gmjax.reduction.eise import EISECriterion
 from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.pcm import checked_search, search_aux
@@ -224,28 +224,7 @@ class GMRCM:
         """A fresh state for mixtures of ``capacity`` slots."""
         return init_state(capacity)
 
-    def reduce(
-        self, gm: GaussianMixture, state: GMRCMState | None, *, key: jax.Array | None = None
-    ) -> tuple[GaussianMixture, GMRCMState, ReductionInfo]:
-        """One reduction with the carried state: ``(reduced, new_state, info)``."""
-        return gmrcm(
-            gm,
-            state,
-            alpha=self.alpha,
-            lam=self.lam,
-            lambda_range=self.lambda_range,
-            grid_size=self.grid_size,
-            newton_steps=self.newton_steps,
-            temperature=self.temperature,
-            tol=self.tol,
-            range_scale=self.range_scale,
-            weight_threshold=self.weight_threshold,
-            low_steps=self.low_steps,
-            large_factor=self.large_factor,
-            dims=self.dims,
-            capacity=self.capacity,
-            key=key,
-        )
+    reduce = reduces_with_state(gmrcm)
 
     def __call__(
         self, gm: GaussianMixture, *, key: jax.Array | None = None

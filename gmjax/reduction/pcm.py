@@ -70,24 +70,15 @@ __all__ = ["pcm", "PCM", "search_aux", "validate_search_args", "checked_search"]
 
 
 def validate_search_args(
-    *,
-    lam: Any,
-    lambda_range: Sequence[Any],
-    alpha: Any,
-    temperature: Any,
-    tol: Any,
-    range_scale: Any,
-    grid_size: int,
-    newton_steps: int,
-    dims: Sequence[int] | None,
-    dim: int,
-    allow_zero_temperature: bool = False,
+    search: ConfidenceSearch, lam: Any, dim: int, *, allow_zero_temperature: bool = False
 ) -> None:
-    """Eager ``ValueError`` checks shared by :func:`pcm` and ``gmrcm`` (no-op on tracers).
+    """Eager ``ValueError`` checks of a confidence search built from :func:`pcm`'s or ``gmrcm``'s
+    arguments, naming the argument (no-op on tracers); ``dim`` is the mixture's dimension.
 
     ``temperature`` must be positive (it smooths the search's EISE), or non-negative with
     ``allow_zero_temperature`` (PCM's relaxed modes at a fixed ``λ``, where 0 is the hard rule).
     """
+    lambda_range = search.lambda_range
     if len(tuple(lambda_range)) != 2:
         raise ValueError(f"lambda_range: expected (low, high), got {lambda_range!r}")
     lo, hi = lambda_range
@@ -97,18 +88,18 @@ def validate_search_args(
         raise ValueError(f"lambda_range: need low < high, got {lambda_range!r}")
     if lam is not None:
         _validate.validate_nonneg(lam, "lam", allow_inf=False)
-    _validate.validate_nonneg(alpha, "alpha", allow_inf=False)
-    _validate.validate_nonneg(tol, "tol", allow_inf=False)
-    for name, value in (("temperature", temperature), ("range_scale", range_scale)):
+    _validate.validate_nonneg(search.alpha, "alpha", allow_inf=False)
+    _validate.validate_nonneg(search.tol, "tol", allow_inf=False)
+    for name, value in (("temperature", search.temperature), ("range_scale", search.range_scale)):
         _validate.validate_nonneg(value, name, allow_inf=False)
         if name == "temperature" and allow_zero_temperature:
             continue
         if _validate.is_concrete(value) and float(value) == 0.0:
             raise ValueError(f"{name}: must be positive, got {value!r}")
-    _validate.validate_count(grid_size, "grid_size", 2, 10_000)
-    _validate.validate_count(newton_steps, "newton_steps", 0, 10_000)
+    _validate.validate_count(search.grid_size, "grid_size", 2, 10_000)
+    _validate.validate_count(search.newton_steps, "newton_steps", 0, 10_000)
+    dims = search.dims
     if dims is not None:
-        dims = tuple(dims)
         if not dims or any((not isinstance(i, int)) or i < 0 or i >= dim for i in dims):
             raise ValueError(f"dims: expected distinct state indices in [0, {dim}), got {dims!r}")
         if len(set(dims)) != len(dims):
@@ -132,8 +123,8 @@ def checked_search(
 ) -> tuple[ConfidenceSearch, Any, Array | None]:
     """The confidence search of :func:`pcm` and ``gmrcm`` from their arguments: traced NaNs replaced
     (:func:`gmjax.reduction._util.replace_nans`; the stand-ins are :class:`ConfidenceSearch`'s
-    defaults and ``lam = 2``), the concrete values checked (:func:`validate_search_args`), the frozen
-    :class:`ConfidenceSearch` built.
+    defaults and ``lam = 2``), the frozen :class:`ConfidenceSearch` built, its concrete values
+    checked (:func:`validate_search_args`).
 
     Returns:
         ``(search, lam, bad)``: ``bad`` is the traced "some argument was NaN" (``None`` when none
@@ -141,19 +132,6 @@ def checked_search(
     """
     (lam, lambda_range, alpha, temperature, tol, range_scale), bad = _util.replace_nans(
         (lam, 2.0), (lambda_range, 2.0), (alpha, 1e-3), (temperature, 0.2), (tol, 1e-6), (range_scale, 0.5)
-    )
-    validate_search_args(
-        lam=lam,
-        lambda_range=lambda_range,
-        alpha=alpha,
-        temperature=temperature,
-        tol=tol,
-        range_scale=range_scale,
-        grid_size=grid_size,
-        newton_steps=newton_steps,
-        dims=dims,
-        dim=gm.dim,
-        allow_zero_temperature=allow_zero_temperature,
     )
     search = ConfidenceSearch(
         lambda_range=tuple(lambda_range),
@@ -163,9 +141,10 @@ def checked_search(
         range_scale=range_scale,
         grid_size=grid_size,
         newton_steps=newton_steps,
-        dims=None if dims is None else tuple(int(i) for i in dims),
+        dims=None if dims is None else tuple(dims),
         criterion=criterion,
     )
+    validate_search_args(search, lam, gm.dim, allow_zero_temperature=allow_zero_temperature)
     return search, lam, bad
 
 

@@ -8,7 +8,6 @@ the moment-preserving merge (seed 002 eqs 70-72), over the engine in :mod:`gmjax
 from __future__ import annotations
 
 from functools import partial
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -27,7 +26,7 @@ from gmjax.reduction._greedy import (
     init_state,
     upper_argmin,
 )
-from gmjax.reduction.base import CountThreshold, ReductionInfo, calls
+from gmjax.reduction.base import CountThreshold, calls
 
 __all__ = ["runnalls", "runnalls_cost", "Runnalls"]
 
@@ -102,14 +101,9 @@ def _runnalls_core(gm, num_out, threshold, capacity):
     return finish(gm, s, n_steps, capacity)
 
 
-def runnalls(
-    gm: GaussianMixture,
-    num_out: int,
-    threshold: Any = None,
-    *,
-    capacity: int | None = None,
-    key: jax.Array | None = None,
-) -> tuple[GaussianMixture, ReductionInfo]:
+runnalls = _util.count_threshold_reducer(
+    _runnalls,
+    "runnalls",
     """Runnalls' greedy KL-bound reduction (Runnalls 2007; the R-GMR baseline of seed 000).
 
     Repeatedly merges the pair with the smallest :func:`runnalls_cost` (an upper bound on the KL
@@ -126,9 +120,8 @@ def runnalls(
     Returns:
         ``(reduced mixture, info)``; ``info.cost`` is the summed bound, ``info.aux["merges"]`` the
         merge sequence.
-    """
-    del key
-    return _util.reduce_count_threshold(_runnalls, gm, num_out, threshold, capacity)
+    """,
+)
 
 
 @pytree_dataclass

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from functools import partial
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -11,18 +10,9 @@ import jax.numpy as jnp
 from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass
 from gmjax._types import Array
-from gmjax.mixture import GaussianMixture, moments
-from gmjax.reduction import _util
-from gmjax.reduction._greedy import (
-    BLOCK,
-    chunked,
-    clean_upper,
-    finish,
-    greedy_steps,
-    init_state,
-    upper_argmin,
-)
-from gmjax.reduction.base import CountThreshold, ReductionInfo, calls
+from gmjax.mixture import moments
+from gmjax.reduction import _greedy, _util
+from gmjax.reduction.base import CountThreshold, calls
 
 __all__ = ["salmond", "salmond_cost", "Salmond"]
 
@@ -44,7 +34,7 @@ def salmond_cost(wi: Array, mi: Array, wj: Array, mj: Array, Pinv_total: Array) 
 @partial(jax.jit, static_argnames=("num_out", "capacity"))
 def _salmond(gm, num_out, threshold, capacity):
     threshold = jax.lax.stop_gradient(threshold)
-    return chunked(lambda g, t: _salmond_core(g, num_out, t, capacity), BLOCK)(gm, threshold)
+    return _greedy.chunked(lambda g, t: _salmond_core(g, num_out, t, capacity), _greedy.BLOCK)(gm, threshold)
 
 
 def _salmond_core(gm, num_out, threshold, capacity):
@@ -56,28 +46,22 @@ def _salmond_core(gm, num_out, threshold, capacity):
     def row_cost(s, i):
         return salmond_cost(s.w[i], s.m[i], s.w, s.m, Pinv)
 
-    body, n_steps = greedy_steps(gm, num_out, threshold, upper_argmin, row_cost)
-    s = jax.lax.fori_loop(0, n_steps, body, init_state(gm, clean_upper(C, gm.mask)))
-    out, info = finish(gm, s, n_steps, capacity)
+    body, n_steps = _greedy.greedy_steps(gm, num_out, threshold, _greedy.upper_argmin, row_cost)
+    s = jax.lax.fori_loop(0, n_steps, body, _greedy.init_state(gm, _greedy.clean_upper(C, gm.mask)))
+    out, info = _greedy.finish(gm, s, n_steps, capacity)
     return out, info
 
 
-def salmond(
-    gm: GaussianMixture,
-    num_out: int,
-    threshold: Any = None,
-    *,
-    capacity: int | None = None,
-    key: jax.Array | None = None,
-) -> tuple[GaussianMixture, ReductionInfo]:
+salmond = _util.count_threshold_reducer(
+    _salmond,
+    "salmond",
     """Salmond's joining algorithm (Salmond 1990).
 
     Repeatedly merges the pair with the smallest :func:`salmond_cost` (weighted squared distance of
     the means in the metric of the whole mixture's covariance) until ``num_out`` remain or the
     smallest distance exceeds ``threshold``. Arguments as in :func:`runnalls`.
-    """
-    del key
-    return _util.reduce_count_threshold(_salmond, gm, num_out, threshold, capacity)
+    """,
+)
 
 
 @pytree_dataclass

@@ -73,9 +73,8 @@ def _vo_ma(gm, prune_threshold, merge_threshold, max_components, capacity):
     out_total = jnp.sum(out.weights)
     scale = jnp.where(out_total > 0, total / jnp.where(out_total > 0, out_total, 1.0), 1.0)
     out = out._replace(weights=out.weights * scale)
-    out, labels_f, overflow, dropped = _util.finalize(gm, out, kept_labels, capacity)
-    return out, make_info(
-        gm, out, labels_f, pruned_mass=pruned + info.pruned_mass, overflow=overflow | info.overflow
+    return _util.finalize_info(
+        gm, out, kept_labels, capacity, pruned_mass=pruned + info.pruned_mass, overflow=info.overflow
     )
 
 

@@ -14,8 +14,8 @@ from gmjax._pytree import pytree_dataclass, static_field
 from gmjax.metrics import ise
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction import _util
-from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap
-from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
+from gmjax.reduction._ise_greedy import ISEGreedyState, initial_state, ise_terms, overlap, self_term
+from gmjax.reduction.base import ReductionInfo, Stateless, calls
 
 __all__ = ["williams", "Williams"]
 
@@ -28,15 +28,7 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
     d = gm.dim
     eye = jnp.eye(d, dtype=gm.covs.dtype)
     w0 = jnp.where(gm.mask, gm.weights, 0.0)
-    Jhh = (
-        w0
-        @ jnp.where(
-            gm.mask[:, None] & gm.mask[None, :],
-            overlap(gm.means[:, None], gm.covs[:, None], gm.means[None], gm.covs[None]),
-            0.0,
-        )
-        @ w0
-    )
+    Jhh = self_term(gm, w0)
     upper = jnp.arange(K)[:, None] < jnp.arange(K)[None, :]
 
     def body(step, s):
@@ -120,16 +112,15 @@ def _williams(gm, num_out, threshold, allow_prune, capacity):
     s0 = initial_state(gm, w0, n_steps)
     s = jax.lax.fori_loop(0, n_steps, body, s0)
     work = GaussianMixture(s.w, s.m, s.P, s.mask)
-    out, labels, overflow, dropped = _util.finalize(gm, work, s.labels, capacity)
     pruned = jnp.sum(w0) - jnp.sum(jnp.where(s.labels >= 0, w0, 0.0))
-    return out, make_info(
+    return _util.finalize_info(
         gm,
-        out,
-        labels,
-        overflow=overflow,
-        pruned_mass=pruned + dropped,
-        cost=ise(gm, out),
+        work,
+        s.labels,
+        capacity,
+        cost=partial(ise, gm),  # the output's ISE to the input
         aux={"actions": s.actions[:n_steps]},
+        pruned_mass=pruned,
     )
 
 
