@@ -65,6 +65,7 @@ empty rows and label ``-1``. Extra padded slots change nothing.
 
 from __future__ import annotations
 
+import functools
 from functools import partial
 from typing import NamedTuple, Sequence
 
@@ -211,19 +212,47 @@ def _next_sharing_pair(rows: Array, i: Array, j: Array) -> tuple[Array, Array, A
     return here | jnp.any(has_later), i_next, jnp.argmax(j_next).astype(i.dtype)
 
 
-def _split_pair(rows: Array, i: Array, j: Array, dist: Array, absorb: bool) -> Array:
+_UNROLL_RANKS = 64  # neighbours counted unrolled up to this capacity, in a fori_loop above
+
+
+def _nearness_ranks(dist: Array) -> Array:
+    """``(K, K)`` ``2 R[k, m]`` with ``R[k, m] = #{l : dist[l, m] < dist[k, m]}``, the rank of ``k``
+    among ``m``'s neighbours (ties share a rank), as the smallest unsigned type that holds ``2K``.
+
+    ``R`` is order-preserving column by column (``dist[k, m] <= dist[l, m]`` iff ``R[k, m] <=
+    R[l, m]``), so eq 28's comparison of nearest-member distances is a comparison of nearest-member
+    ranks, exactly; the free low bit lets :func:`_split_pair` tag the members of ``C_j*`` and find
+    both nearest members in one minimum. One byte per entry for ``K < 127`` instead of a distance's
+    eight: each pair split of the sweep is 2-3x faster under ``vmap``.
+    """
+    K = dist.shape[0]
+    dtype = jnp.uint8 if K < 127 else (jnp.uint16 if K < 32767 else jnp.uint32)
+    two = jnp.asarray(2, dtype)
+
+    def below(l):  # [k, m]: 2 if l is nearer to m than k is, else 0
+        return jnp.where(dist[l][None, :] < dist, two, jnp.zeros((), dtype))
+
+    # counted neighbour by neighbour, elementwise (a sort and search, or the (K, K, K) comparison,
+    # cost 30-70x as much under vmap at K = 20)
+    if K <= _UNROLL_RANKS:
+        return functools.reduce(jnp.add, [below(l) for l in range(K)])
+    return jax.lax.fori_loop(0, K, lambda l, acc: acc + below(l), jnp.zeros((K, K), dtype))
+
+
+def _split_pair(rows: Array, i: Array, j: Array, ranks: Array, absorb: bool) -> Array:
     """Fine-tune the sharing pair ``(i, j)`` of packed rows ``(K, W)`` (seed 000 eqs 26–28); see the
-    module docstring."""
+    module docstring. ``ranks``: :func:`_nearness_ranks` of the centre distances."""
     K = rows.shape[0]
     ci, cj = rows[i], rows[j]
     ov, ri, rj = ci & cj, ci & ~cj, cj & ~ci  # eq 27: the renewed clusters C_i*, C_j*
     j_in_i = jnp.all(rj == 0)  # C_j ⊆ C_i
     i_in_j = jnp.all(ri == 0)  # C_i ⊆ C_j
-    # Situation 2: eq 28 nearest-member distance of every component to each renewed cluster
-    inf = jnp.asarray(jnp.inf, dist.dtype)
-    di = jnp.min(jnp.where(_unpack(ri, K)[:, None], dist, inf), axis=0)
-    dj = jnp.min(jnp.where(_unpack(rj, K)[:, None], dist, inf), axis=0)
-    to_i = ov & _pack(di <= dj)  # ties to the lower-indexed cluster i
+    # Situation 2, eq 28: the nearest member of C_i* ∪ C_j* to every component, by 2 R + [in C_j*];
+    # it lies in C_i* iff d_i <= d_j (a tie of ranks goes to the lower-indexed cluster i)
+    far = jnp.asarray(jnp.iinfo(ranks.dtype).max, ranks.dtype)  # odd: "in C_j*" when nobody is
+    in_j = _unpack(rj, K)[:, None].astype(ranks.dtype)
+    nearest = jnp.min(jnp.where(_unpack(ri | rj, K)[:, None], ranks | in_j, far), axis=0)
+    to_i = ov & _pack((nearest & 1) == 0)
     s2_i, s2_j = ri | to_i, rj | (ov & ~to_i)
     empty = jnp.zeros_like(ci)
     if absorb:  # Situation 3, seed 003 H2: the superset keeps everything
@@ -235,7 +264,9 @@ def _split_pair(rows: Array, i: Array, j: Array, dist: Array, absorb: bool) -> A
     identical = j_in_i & i_in_j
     new_i = jnp.where(identical, ci, jnp.where(j_in_i | i_in_j, s3_i, s2_i))
     new_j = jnp.where(identical, empty, jnp.where(j_in_i | i_in_j, s3_j, s2_j))
-    return rows.at[i].set(new_i).at[j].set(new_j)
+    # rows i and j rewritten by a select (under vmap a scatter at batched rows costs more)
+    slot = jnp.arange(K, dtype=i.dtype)[:, None]
+    return jnp.where(slot == i, new_i, jnp.where(slot == j, new_j, rows))
 
 
 @partial(jax.jit, static_argnames=("subset_rule",))
@@ -293,11 +324,15 @@ def _resolve_packed(packed: Array, dist: Array, absorb: bool) -> Array:
         _, g, _, _, step = state
         return (g < G) & (step < max_steps)
 
+    ranks = _nearness_ranks(dist)
+    grid_point = jnp.arange(G)[:, None, None]
+
     def body(state):
         packed, g, i, j, step = state
         rows = packed[g]
         found, i, j = _next_sharing_pair(rows, i, j)
-        packed = packed.at[g].set(jnp.where(found, _split_pair(rows, i, j, dist, absorb), rows))
+        # clustering g rewritten by a select (under vmap a scatter at a batched g costs more)
+        packed = jnp.where((grid_point == g) & found, _split_pair(rows, i, j, ranks, absorb)[None], packed)
         zero = jnp.zeros_like(i)
         return (
             packed,

@@ -10,6 +10,7 @@ import pytest
 
 from gmjax.mixture import GaussianMixture, pad
 from gmjax.reduction.clustering import (
+    _nearness_ranks,
     centre_distances,
     combine_identical,
     gauss_cluster,
@@ -221,6 +222,39 @@ def test_grid_of_lambdas_equals_one_lambda_at_a_time_and_the_reference(triangula
         np.testing.assert_array_equal(both[g], resolve_overlaps(stack[g], dist, subset_rule=rule))
     with pytest.raises(ValueError, match="lam"):
         gauss_cluster(gm, jnp.ones((2, 2)))
+
+
+@pytest.mark.parametrize("triangular, rule", [(False, "split"), (True, "absorb")])
+def test_ties_of_eq28_match_the_reference(triangular, rule):
+    """Centres on an integer lattice, some repeated: many equal centre distances, so eq 28's tie rule
+    (to the lower-indexed cluster) decides often. The sweep compares nearest-member *ranks*
+    (``_nearness_ranks``), which must decide every tie as the distances do (the NumPy loop)."""
+    K = 12
+    rng = np.random.default_rng(28)
+    lams = (1.0, 2.0, 3.5, 6.0)
+    for d in (1, 2):
+        for _ in range(3):
+            means = rng.integers(-2, 3, (K, d)).astype(float)
+            means[K - 3 :] = means[:3]  # repeated centres
+            covs = np.einsum("k,ij->kij", rng.choice([0.5, 1.0, 2.0], K), np.eye(d))
+            gm = GaussianMixture.create(np.full(K, 1.0 / K), means, covs)
+            grid = gauss_cluster(gm, jnp.asarray(lams), triangular=triangular, subset_rule=rule)
+            for g, lam in enumerate(lams):
+                expect = np.full(K, -1)
+                for head, members in enumerate(ref.cluster(means, covs, lam, triangular, rule)):
+                    expect[list(members)] = head
+                np.testing.assert_array_equal(np.asarray(grid.labels[g]), expect)
+
+
+def test_nearness_ranks_preserve_each_columns_order():
+    rng = np.random.default_rng(3)
+    dist = rng.integers(0, 4, (9, 9)).astype(float)  # many ties
+    R2 = np.asarray(_nearness_ranks(jnp.asarray(dist)))  # twice the ranks, the low bit free
+    assert R2.dtype == np.uint8 and np.all(R2 % 2 == 0)
+    for m in range(9):
+        for k in range(9):
+            np.testing.assert_array_equal(R2[k, m] <= R2[:, m], dist[k, m] <= dist[:, m])
+    assert _nearness_ranks(jnp.zeros((200, 200))).dtype == jnp.uint16
 
 
 def test_partition_property():
