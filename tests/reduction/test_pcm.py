@@ -15,6 +15,7 @@ from gmjax.mixture import GaussianMixture, moments, pad
 from gmjax.reduction.clustering import gauss_cluster
 from gmjax.reduction.eise import (
     ConfidenceSearch,
+    EISECriterion,
     cluster_ise,
     eise,
     hard_eise,
@@ -638,6 +639,44 @@ def test_search_in_1d_gradient_matches_finite_differences():
     fd = (lam_newton(0.01 + h) - lam_newton(0.01 - h)) / (2 * h)
     assert np.isfinite(slope) and slope != 0.0
     np.testing.assert_allclose(slope, fd, rtol=1e-4)
+
+
+@pytest.mark.parametrize("criterion", [EISECriterion.seed000(), EISECriterion.seed003()])
+def test_grid_costs_each_run_once_under_vmap(criterion):
+    """Under ``vmap`` the grid search costs only the first clustering of each run of equal
+    consecutive clusterings (``search._grid_costs``), the run starts of the whole batch in blocks of
+    64 (here 24 mixtures, more run starts than one block). Every grid point's EISE and N' equal the
+    search alone (which costs every grid point) and the hard EISE of that grid point's clustering."""
+    d = 2
+    batch = [random_gm(seed, n=10, d=d)[0] for seed in range(24)]
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *batch)
+    search = ConfidenceSearch(alpha=0.01, grid_size=15, newton_steps=0, criterion=criterion)
+    res_v = jax.jit(jax.vmap(lambda g: search_confidence(g, search)))(stacked)
+    starts = 0
+    for b, gm in enumerate(batch):
+        res = search_confidence(gm, search)
+        if criterion.method == "ci":  # the hard CI merge sums members one by one: the same bits
+            np.testing.assert_array_equal(np.asarray(res_v.grid_eise[b]), np.asarray(res.grid_eise))
+        else:  # the moment merge's one-hot products are dots, summed in an order XLA picks by shape,
+            # and J_hh - 2 J_hr + J_rr cancels: equal to the references' 1e-12
+            np.testing.assert_allclose(np.asarray(res_v.grid_eise[b]), np.asarray(res.grid_eise), rtol=1e-12)
+        np.testing.assert_array_equal(np.asarray(res_v.grid_counts[b]), np.asarray(res.grid_counts))
+        labels = gauss_cluster(
+            gm, res.grid, triangular=criterion.triangular, subset_rule=criterion.subset_rule
+        ).labels
+        starts += 1 + int(jnp.sum(jnp.any(labels[1:] != labels[:-1], axis=-1)))
+        for g in range(search.grid_size):
+            value, _, n = hard_eise(
+                gm,
+                labels[g],
+                alpha=0.01,
+                method=criterion.method,
+                regularizer=criterion.regularizer,
+                ise_scale=criterion.ise_scale,
+            )
+            np.testing.assert_allclose(float(res.grid_eise[g]), float(value), rtol=1e-13)
+            assert int(res.grid_counts[g]) == int(n)
+    assert starts > 64  # the batch rule ran more than one block
 
 
 def test_search_under_vmap_over_no_runs():
