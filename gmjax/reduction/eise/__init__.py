@@ -36,7 +36,9 @@ the cluster a grid point puts it in). Equal to the dense soft merge to rounding
 (``tests/reduction/test_pcm.py``). Neighbouring grid points mostly cluster alike, so few of those pairs are
 distinct; for ``d >= 2`` the search evaluates each distinct pair once (``_Pairs``, ``_over_pairs``;
 under ``vmap`` the distinct pairs of all runs side by side): in 4-D, where the pairs' ``d × d``
-algebra dominates, a relaxed evaluation costs a little over a quarter of one over all pairs.
+algebra dominates, a relaxed evaluation costs a little over a quarter of one over all pairs. The
+grid's hard EISE likewise costs each run of equal consecutive clusterings once under ``vmap``
+(``search._grid_costs``: the run starts of the whole batch, gathered into blocks).
 
 Newton starts at the grid's best ``λ`` and takes damped steps (trust radius ``τ``, backtracking; see
 ``newton._newton``; every candidate ``λ`` is evaluated with its derivatives, which the next step
