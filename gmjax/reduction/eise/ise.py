@@ -142,6 +142,16 @@ def _merge_hard_ci(gm: GaussianMixture, labels: Array, info: Array | None = None
     return GaussianMixture(jnp.where(live, W, 0.0), mu, cov, live)
 
 
+def _merge_hard(
+    gm: GaussianMixture, labels: Array, method: str, info: Array | None = None
+) -> GaussianMixture:
+    """The merge of a hard clustering as :func:`hard_eise` forms it (``"ci"``: :func:`_merge_hard_ci`;
+    ``"moment"``: :func:`merge_membership` of the one-hot membership), capacity ``K``."""
+    if method == "ci":
+        return _merge_hard_ci(gm, labels, info)
+    return merge_membership(gm, onehot_membership(labels, gm.capacity, gm.means.dtype), method)
+
+
 def _pair_log_overlaps(ma: Array, Pa: Array, mb: Array, Pb: Array) -> Array:
     """``(A, B)`` ``log ∫ N(ma, Pa) N(mb, Pb) = log N(ma; mb, Pa + Pb)`` (seed 000 eqs 34–35)."""
     return gaussian.spd_logpdf(ma[:, None, :], mb[None, :, :], Pa[:, None] + Pb[None, :])
@@ -273,7 +283,7 @@ def hard_eise(
     _check_options(method, regularizer)
     K = gm.capacity
     A = onehot_membership(labels, K, gm.means.dtype)
-    merged = _merge_hard_ci(gm, labels, info) if method == "ci" else merge_membership(gm, A, method)
+    merged = _merge_hard(gm, labels, method, info)
     n_clusters = jnp.sum(merged.mask.astype(jnp.int32))
     n_ref = jnp.sum(gm.mask.astype(jnp.int32))
     value = eise(

@@ -13,8 +13,9 @@ from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction._greedy import _tied, _zero_of
 from gmjax.reduction.clustering import centre_distances, gauss_cluster, judgment_matrix, similarity_thresholds
-from gmjax.reduction.eise.ise import _check_options, hard_eise, self_overlaps
+from gmjax.reduction.eise.ise import _check_options, _merge_hard, hard_eise, self_overlaps
 from gmjax.reduction.eise.newton import _first_where, _newton
 from gmjax.reduction.eise.relaxed import _relaxed_at, _relaxed_parts, _relaxed_slopes_jit
 
@@ -136,10 +137,10 @@ def _grid_costs(evaluate, grid_labels: Array, *operands) -> tuple[Array, Array]:
     ``d = 4``, 6.8 at ``d = 2``. Alone, every grid point is costed (a ``vmap``). Under ``vmap`` the
     batch rule gathers the first clustering of every run of every mixture of the batch and costs
     those, in blocks of :data:`_EISE_BLOCK`; each grid point then takes its run's value, which is
-    the value its own clustering has (the same arithmetic on the same labels). The values select
-    ``λ`` and are not differentiated (the caller costs the chosen clustering again, with gradients).
+    the value its own clustering has (the same arithmetic on the same labels). A ``custom_vmap`` has
+    no differentiation rule, so the costs are a ``custom_jvp`` whose rule differentiates the plain
+    evaluation of every grid point (as ``_greedy.chunked`` does).
     """
-    operands = jax.lax.stop_gradient(operands)
 
     def alone(grid_labels, *operands):
         return jax.vmap(lambda labels: evaluate(labels, *operands))(grid_labels)
@@ -179,7 +180,15 @@ def _grid_costs(evaluate, grid_labels: Array, *operands) -> tuple[Array, Array]:
         source = (jnp.arange(B)[:, None] * G + run_start).reshape(n)
         return tuple(o[source].reshape((B, G) + o.shape[1:]) for o in outs), (True, True)
 
-    return batched(grid_labels, *operands)
+    costs = jax.custom_jvp(lambda *args: batched(*args))
+
+    @costs.defjvp
+    def _derivatives(primals, tangents):
+        out, out_dot = jax.jvp(alone, primals, tangents)
+        zero = _zero_of(primals)  # batch every output as the value's rule does (_greedy._zero_of)
+        return _tied(out, zero), _tied(out_dot, zero)
+
+    return costs(grid_labels, *operands)
 
 
 class EISECriterion(NamedTuple):
@@ -355,9 +364,13 @@ def search_confidence(gm: GaussianMixture, search: ConfidenceSearch) -> SearchRe
         partial(_eise_and_count, criterion=search.criterion), grid_labels, gm, alpha, overlaps, info
     )
     best = _first_minimiser(grid_eise, gm.capacity)
-    lam_grid = grid[best]
-    # the chosen clustering costed again, with gradients (the grid's costs only select it)
-    eise_grid, labels_grid, merged_grid, n_grid = evaluate_labels(grid_labels[best])
+    lam_grid, eise_grid, labels_grid, n_grid = (
+        grid[best],
+        grid_eise[best],
+        grid_labels[best],
+        grid_counts[best],
+    )
+    merged_grid = _merge_hard(gm, labels_grid, method, info)
 
     if newton_steps == 0:
         zero_i = jnp.zeros((), jnp.int32)
