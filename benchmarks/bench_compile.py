@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> dict:
         alone = jax.jit(jax.vmap(lambda z, inputs, k, f=filt: run(f, z, inputs, key=k)[1]))
         results[name] = {"study": [], "alone": []}
         for _ in range(repeats):
-            results[name]["study"].append(_timed_compile(program, (sims, np.uint32(CHUNK))))
+            results[name]["study"].append(_timed_compile(program.jitted, (sims, np.ones(CHUNK, bool))))
             results[name]["alone"].append(_timed_compile(alone, (sims.zs, sims.inputs, sims.filter_key)))
         print(name, {k: [round(r["total_s"], 2) for r in v] for k, v in results[name].items()}, flush=True)
 
