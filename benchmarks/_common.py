@@ -27,6 +27,23 @@ def block(x: Any) -> Any:
     )
 
 
+def with_numba_threads(n: int, fn: Callable[[], Any]) -> Callable[[], Any]:
+    """``fn`` as a call that runs with numba's thread count set to ``n`` (restored after), for timing a
+    ``prange`` driver on one thread beside its default (numba imported on the call)."""
+
+    def call():
+        import numba
+
+        old = numba.get_num_threads()
+        numba.set_num_threads(n)
+        try:
+            return fn()
+        finally:
+            numba.set_num_threads(old)
+
+    return call
+
+
 def time_jax(fn: Callable, *args: Any, repeats: int = 5) -> dict[str, float]:
     """Time a jitted function: first call (compile + run) apart from ``repeats`` steady calls.
 

@@ -129,22 +129,8 @@ def numba_filter(args, batched: bool = True):
     return loop
 
 
-def _with_threads(n, fn):
-    import numba
-
-    def call():
-        old = numba.get_num_threads()
-        numba.set_num_threads(n)
-        try:
-            return fn()
-        finally:
-            numba.set_num_threads(old)
-
-    return call
-
-
 def case(system: str, n_runs: int, repeats: int, threads: int) -> dict:
-    from _common import block, time_alternating
+    from _common import block, time_alternating, with_numba_threads
 
     model, zs, ts, args = problem(system, n_runs)
     gm_fn = gmjax_filter(model, ts)
@@ -162,8 +148,8 @@ def case(system: str, n_runs: int, repeats: int, threads: int) -> dict:
     t_g, t_n, t_1 = time_alternating(
         [
             keep("gmjax", lambda: gm_fn(zs)),
-            _with_threads(threads, keep("numba", lambda: nb_fn(zs_np))),
-            _with_threads(1, lambda: nb_fn(zs_np)),
+            with_numba_threads(threads, keep("numba", lambda: nb_fn(zs_np))),
+            with_numba_threads(1, lambda: nb_fn(zs_np)),
         ],
         repeats=repeats,
     )

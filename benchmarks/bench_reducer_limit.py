@@ -56,7 +56,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import markdown_table, time_alternating, write_results  # noqa: E402
+from _common import markdown_table, time_alternating, with_numba_threads, write_results  # noqa: E402
 
 from gmjax import reduction as R  # noqa: E402
 from gmjax.mixture import GaussianMixture  # noqa: E402
@@ -150,18 +150,6 @@ def _check(name, out, info, r):
     return diff, same, 0
 
 
-def _with_threads(n, fn):
-    def call():
-        old = numba.get_num_threads()
-        numba.set_num_threads(n)
-        try:
-            return fn()
-        finally:
-            numba.set_num_threads(old)
-
-    return call
-
-
 def run_case(name, jfn, nfn, w, m, P, repeats, threads):
     B = w.shape[0]
     gm = GaussianMixture(jnp.asarray(w), jnp.asarray(m), jnp.asarray(P), jnp.ones(w.shape, bool))
@@ -169,8 +157,8 @@ def run_case(name, jfn, nfn, w, m, P, repeats, threads):
     t_g, t_n, t_1 = time_alternating(
         [
             lambda: kernel(gm),
-            _with_threads(threads, lambda: nfn(w, m, P)),
-            _with_threads(1, lambda: nfn(w, m, P)),
+            with_numba_threads(threads, lambda: nfn(w, m, P)),
+            with_numba_threads(1, lambda: nfn(w, m, P)),
         ],
         repeats=repeats,
     )
@@ -211,7 +199,8 @@ def decompose(w, m, P, repeats, threads):
     for n_out in (K_IN, 40, NUM_OUT):
         kernel = jax.jit(jax.vmap(lambda g, n_out=n_out: R.runnalls(g, n_out)))
         t_g, t_1 = time_alternating(
-            [lambda: kernel(gm), _with_threads(1, lambda: rn.runnalls_batch(w, m, P, n_out))], repeats=repeats
+            [lambda: kernel(gm), with_numba_threads(1, lambda: rn.runnalls_batch(w, m, P, n_out))],
+            repeats=repeats,
         )
         rows[n_out] = (t_g["run_median_s"] * 1e6 / B, t_1["run_median_s"] * 1e6 / B)
     costs = jax.jit(jax.vmap(runnalls_module._initial_costs))
