@@ -137,9 +137,11 @@ def _grid_costs(evaluate, grid_labels: Array, *operands) -> tuple[Array, Array]:
     ``d = 4``, 6.8 at ``d = 2``. Alone, every grid point is costed (a ``vmap``). Under ``vmap`` the
     batch rule gathers the first clustering of every run of every mixture of the batch and costs
     those, in blocks of :data:`_EISE_BLOCK`; each grid point then takes its run's value, which is
-    the value its own clustering has (the same arithmetic on the same labels). A ``custom_vmap`` has
-    no differentiation rule, so the costs are a ``custom_jvp`` whose rule differentiates the plain
-    evaluation of every grid point (as ``_greedy.chunked`` does).
+    the value its own clustering has (the same arithmetic on the same labels; bit for bit with the
+    CI merge, to rounding with the moment merge, whose one-hot products XLA sums in an order it
+    picks by the batch's shape). A ``custom_vmap`` has no differentiation rule, so the costs are a
+    ``custom_jvp`` whose rule differentiates the plain evaluation of every grid point (as
+    ``_greedy.chunked`` does).
     """
 
     def alone(grid_labels, *operands):
