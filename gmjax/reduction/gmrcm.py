@@ -28,8 +28,9 @@ mixture, before the next call. A fresh state (:meth:`GMRCM.init`) is all zeros.
 
 from __future__ import annotations
 
+import sys
 from functools import partial
-from typing import Any, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -40,9 +41,14 @@ from gmjax._types import Array
 from gmjax.mixture import GaussianMixture, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, make_info, reduces_with_state
-from gmjax.reduction.eise import EISECriterion
+from gmjax.reduction.eise.search import ConfidenceSearch, SearchOptions, _SearchSettings
 from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.pcm import checked_search, search_aux
+
+if sys.version_info >= (3, 11):
+    from typing import Unpack
+else:  # pragma: no cover - Python 3.10
+    from typing_extensions import Unpack
 
 __all__ = ["GMRCMState", "gmrcm", "GMRCM", "init_state"]
 
@@ -67,38 +73,32 @@ def gmrcm(
     gm: GaussianMixture,
     state: GMRCMState | None = None,
     *,
-    alpha: Any = 0.3,
     lam: Any = None,
-    lambda_range: Sequence[Any] = (0.5, 3.0),
-    grid_size: int = 11,
-    newton_steps: int = 8,
-    temperature: Any = 0.25,
-    tol: Any = 1e-6,
-    range_scale: Any = 0.5,
     weight_threshold: Any = 0.01,
     low_steps: int = 2,
     large_factor: Any = 1.5,
-    dims: Sequence[int] | None = None,
     capacity: int | None = None,
     key: jax.Array | None = None,
+    **search: Unpack[SearchOptions],
 ) -> tuple[GaussianMixture, GMRCMState, ReductionInfo]:
     """Cluster-merge reduction of seed 003 (Algorithm 1 steps 4–8).
 
     Args:
         gm: input mixture, capacity ``K``.
         state: the :class:`GMRCMState` carried by the filter (``None``: a fresh one).
-        alpha: regularisation constant of eq 10 (§4.2: 0.3).
         lam: a fixed ``λ``; ``None`` searches it over ``lambda_range`` (§4.1: ``[0.5, 3]``).
-        grid_size, newton_steps, temperature, tol: the search (see
-            :func:`gmjax.reduction.eise.search_confidence`).
-        range_scale: the confidence scope is ``range_scale · λσ`` (see
-            :mod:`gmjax.reduction.clustering`).
         weight_threshold: the low-weight threshold (§2.3: 0.01), compared with the weights as given.
         low_steps: static number of consecutive low steps that drops a component (2).
         large_factor: covariance-trace factor of step 4(1) (1.5); ``inf`` disables the rule.
-        dims: static clustering dimensions (default all).
         capacity: static output capacity (default ``K``).
         key: unused.
+        **search: the confidence search (:class:`~gmjax.reduction.eise.SearchOptions`, see
+            :func:`gmjax.reduction.eise.search_confidence`), from seed 003's values
+            (:meth:`~gmjax.reduction.eise.ConfidenceSearch.seed003`): ``alpha`` of eq 10 (§4.2:
+            0.3), ``lambda_range`` (§4.1: ``(0.5, 3)``), ``temperature`` (0.25), ``grid_size`` (11),
+            ``newton_steps`` (8), ``tol`` (1e-6), ``range_scale`` (0.5; the confidence scope is
+            ``range_scale · λσ``, :mod:`gmjax.reduction.clustering`) and the static clustering
+            ``dims`` (default all).
 
     Returns:
         ``(reduced, new_state, info)``; ``new_state`` is aligned with the output slots (see the
@@ -108,23 +108,12 @@ def gmrcm(
 
     Raises:
         ValueError: for a bad concrete mixture, state or option, naming the argument.
+        TypeError: for a keyword that is neither an argument above nor a search setting.
     """
     del key
     (weight_threshold, large_factor), bad = _util.replace_nans((weight_threshold, 0.01), (large_factor, 1.5))
     _validate.validate_mixture(gm)
-    search, lam, bad_search = checked_search(
-        gm,
-        lam,
-        EISECriterion.seed003(),
-        lambda_range=lambda_range,
-        alpha=alpha,
-        temperature=temperature,
-        tol=tol,
-        range_scale=range_scale,
-        grid_size=grid_size,
-        newton_steps=newton_steps,
-        dims=dims,
-    )
+    confidence, lam, bad_search = checked_search(gm, lam, ConfidenceSearch.seed003(), search, caller="gmrcm")
     _validate.validate_nonneg(weight_threshold, "weight_threshold")
     _validate.validate_nonneg(large_factor, "large_factor")
     low_steps = _validate.validate_count(low_steps, "low_steps", 1, 2**31 - 1)
@@ -135,7 +124,7 @@ def gmrcm(
     if not isinstance(state, GMRCMState) or jnp.shape(state.low_count) != (K,):
         raise ValueError(f"state: expected a GMRCMState with low_count of shape ({K},)")
     out = _gmrcm_core(
-        gm, state, lam, search, weight_threshold, large_factor, low_steps=low_steps, capacity=cap
+        gm, state, lam, confidence, weight_threshold, large_factor, low_steps=low_steps, capacity=cap
     )
     return _util.unchanged_if_nan(_util.either(bad, bad_search), gm, out, state_init=init_state)
 
@@ -198,26 +187,24 @@ def _gmrcm_core(gm, state, lam, search, weight_threshold, large_factor, *, low_s
 
 
 @pytree_dataclass
-class GMRCM:
-    """Config for :func:`gmrcm` (static: sizes and step counts; the rest are traced).
+class GMRCM(_SearchSettings):
+    """Config for :func:`gmrcm` (static: sizes and step counts; the rest are traced): :func:`gmrcm`'s
+    arguments, its search settings included (seed 003's values, as in
+    :meth:`~gmjax.reduction.eise.ConfidenceSearch.seed003`).
 
     A stateful :class:`~gmjax.reduction.Reducer`: :meth:`init` gives a fresh state (no low-weight
     history), :meth:`reduce` reduces with the state a filter carries, and ``GMRCM()(gm)`` reduces
     from a fresh state.
     """
 
-    alpha: Any = 0.3
-    lam: Any = None
+    # seed 003's scope, α and τ; the other search settings as _SearchSettings declares them
     lambda_range: Any = (0.5, 3.0)
+    alpha: Any = 0.3
     temperature: Any = 0.25
-    tol: Any = 1e-6
-    range_scale: Any = 0.5
+    lam: Any = None
     weight_threshold: Any = 0.01
     large_factor: Any = 1.5
     low_steps: int = static_field(2)
-    grid_size: int = static_field(11)
-    newton_steps: int = static_field(8)
-    dims: tuple[int, ...] | None = static_field(None)
     capacity: int | None = static_field(None)
 
     def init(self, capacity: int) -> GMRCMState:

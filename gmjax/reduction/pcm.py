@@ -33,8 +33,10 @@ static ``mode`` is ``"hard"`` (default: the paper's reduction above), ``"soft"``
 
 from __future__ import annotations
 
+import dataclasses
+import sys
 from functools import partial
-from typing import Any, Sequence
+from typing import Any, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -47,13 +49,14 @@ from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.eise import (
     ConfidenceSearch,
-    EISECriterion,
+    SearchOptions,
     SearchResult,
     eise,
     hard_eise,
     merge_membership,
     onehot_membership,
 )
+from gmjax.reduction.eise.search import _SearchSettings
 from gmjax.reduction.merge import merge_labels
 from gmjax.reduction.prune import prune_censored
 from gmjax.reduction.relax import (
@@ -65,6 +68,11 @@ from gmjax.reduction.relax import (
     validate_mode,
     validate_temperature,
 )
+
+if sys.version_info >= (3, 11):
+    from typing import Unpack
+else:  # pragma: no cover - Python 3.10
+    from typing_extensions import Unpack
 
 __all__ = ["pcm", "PCM", "search_aux", "validate_search_args", "checked_search"]
 
@@ -109,40 +117,44 @@ def validate_search_args(
 def checked_search(
     gm: GaussianMixture,
     lam: Any,
-    criterion: EISECriterion,
+    defaults: ConfidenceSearch,
+    options: Mapping[str, Any],
     *,
-    lambda_range: Sequence[Any],
-    alpha: Any,
-    temperature: Any,
-    tol: Any,
-    range_scale: Any,
-    grid_size: int,
-    newton_steps: int,
-    dims: Sequence[int] | None,
+    caller: str,
     allow_zero_temperature: bool = False,
 ) -> tuple[ConfidenceSearch, Any, Array | None]:
-    """The confidence search of :func:`pcm` and ``gmrcm`` from their arguments: traced NaNs replaced
-    (:func:`gmjax.reduction._util.replace_nans`; the stand-ins are :class:`ConfidenceSearch`'s
-    defaults and ``lam = 2``), the frozen :class:`ConfidenceSearch` built, its concrete values
-    checked (:func:`validate_search_args`).
+    """The confidence search of :func:`pcm` and ``gmrcm``: their paper's ``defaults`` with the
+    caller's ``options`` (:class:`~gmjax.reduction.eise.SearchOptions`) in place, traced NaNs
+    replaced (:func:`gmjax.reduction._util.replace_nans`; the stand-ins are :meth:`ConfidenceSearch.seed000`'s
+    values and ``lam = 2``), the concrete values checked (:func:`validate_search_args`).
 
     Returns:
         ``(search, lam, bad)``: ``bad`` is the traced "some argument was NaN" (``None`` when none
         was traced), for :func:`gmjax.reduction._util.unchanged_if_nan`.
+
+    Raises:
+        TypeError: for an option that is not a search setting, as Python words it for ``caller``.
     """
+    for name in options:
+        if name not in SearchOptions.__annotations__:
+            raise TypeError(f"{caller}() got an unexpected keyword argument {name!r}")
+    search = dataclasses.replace(defaults, **options)
     (lam, lambda_range, alpha, temperature, tol, range_scale), bad = _util.replace_nans(
-        (lam, 2.0), (lambda_range, 2.0), (alpha, 1e-3), (temperature, 0.2), (tol, 1e-6), (range_scale, 0.5)
+        (lam, 2.0),
+        (search.lambda_range, 2.0),
+        (search.alpha, 1e-3),
+        (search.temperature, 0.2),
+        (search.tol, 1e-6),
+        (search.range_scale, 0.5),
     )
-    search = ConfidenceSearch(
+    search = dataclasses.replace(
+        search,
         lambda_range=tuple(lambda_range),
         alpha=alpha,
         temperature=temperature,
         tol=tol,
         range_scale=range_scale,
-        grid_size=grid_size,
-        newton_steps=newton_steps,
-        dims=None if dims is None else tuple(dims),
-        criterion=criterion,
+        dims=None if search.dims is None else tuple(search.dims),
     )
     validate_search_args(search, lam, gm.dim, allow_zero_temperature=allow_zero_temperature)
     return search, lam, bad
@@ -169,21 +181,14 @@ def pcm(
     *,
     rho: Any = 0.9544,
     max_components: int | None = None,
-    alpha: Any = 0.001,
     lam: Any = None,
-    lambda_range: Sequence[Any] = (1.0, 3.0),
-    grid_size: int = 11,
-    newton_steps: int = 8,
-    temperature: Any = 0.2,
-    tol: Any = 1e-6,
-    range_scale: Any = 0.5,
-    dims: Sequence[int] | None = None,
     merge: str = "ci",
     prune: bool = True,
     capacity: int | None = None,
     gate_temperature: Any = 0.0,
     mode: str = "hard",
     key: jax.Array | None = None,
+    **search: Unpack[SearchOptions],
 ) -> tuple[GaussianMixture, ReductionInfo]:
     """Prune-cluster-merge reduction (seed 000 Table 1 steps 2–7), optionally relaxed.
 
@@ -192,19 +197,7 @@ def pcm(
             to the input's total).
         rho: censoring threshold ``ρ`` of eqs 20–21 (traced; default 0.9544, the 2σ rule).
         max_components: static cap ``N_u`` of eq 22 (default none).
-        alpha: regularisation constant ``α`` of eq 29 (§IV: 0.001).
         lam: a fixed confidence multiplier ``λ`` (``σ* = λσ``); ``None`` searches it (step 7).
-        lambda_range: the search scope ``(low, high)`` (§IV-A: ``[1, 3]``).
-        grid_size: static number of grid points of the search.
-        newton_steps: static number of Newton–Raphson steps on the relaxed EISE (0: grid only).
-        temperature: relaxation temperature ``τ`` of the clustering in units of ``λ`` (about the
-            grid spacing): the search's relaxed EISE when ``lam`` is ``None`` (must be positive),
-            the soft memberships at ``lam`` in the relaxed modes (``>= 0``; 0 is hard).
-        tol: Newton's stopping tolerance on ``|Δλ|`` and on the relative EISE change.
-        range_scale: the confidence scope is ``range_scale · λσ`` (see
-            :mod:`gmjax.reduction.clustering`; 0.5 reproduces the papers' cluster counts).
-        dims: static state dimensions to cluster on (seed 000 §IV-D: position only); merging and
-            the EISE use the full state.
         merge: ``"ci"`` (eqs 38–39, the paper) or ``"moment"``.
         prune: static; ``False`` skips step 2 (as in the search-scope study of §IV-A).
         capacity: static output capacity (default ``K``); if more clusters survive, the heaviest
@@ -214,6 +207,24 @@ def pcm(
         mode: static ``"hard"`` (default), ``"soft"`` or ``"straight_through"`` (module docstring;
             the relaxed modes need a fixed ``lam``).
         key: unused (Reducer protocol).
+        **search: the confidence search (:class:`~gmjax.reduction.eise.SearchOptions`; the
+            defaults are :meth:`ConfidenceSearch.seed000`'s):
+
+            * ``alpha``: regularisation constant ``α`` of eq 29 (§IV: 0.001);
+            * ``lambda_range``: the search scope ``(low, high)`` (§IV-A: ``(1, 3)``);
+            * ``grid_size``: static number of grid points (11);
+            * ``newton_steps``: static number of Newton–Raphson steps on the relaxed EISE (8; 0:
+              grid only);
+            * ``temperature``: relaxation temperature ``τ`` of the clustering in units of ``λ``
+              (0.2, about the grid spacing): the search's relaxed EISE when ``lam`` is ``None``
+              (must be positive), the soft memberships at ``lam`` in the relaxed modes (``>= 0``;
+              0 is hard);
+            * ``tol``: Newton's stopping tolerance on ``|Δλ|`` and on the relative EISE change
+              (1e-6);
+            * ``range_scale``: the confidence scope is ``range_scale · λσ`` (0.5, which reproduces
+              the papers' cluster counts; see :mod:`gmjax.reduction.clustering`);
+            * ``dims``: static state dimensions to cluster on (seed 000 §IV-D: position only;
+              default all); merging and the EISE use the full state.
 
     Returns:
         ``(reduced, info)``: ``info.cost`` is the EISE at ``λ*``; ``info.aux`` holds ``lambda``
@@ -227,6 +238,7 @@ def pcm(
 
     Raises:
         ValueError: for a bad concrete mixture or an invalid option, naming the argument.
+        TypeError: for a keyword that is neither an argument above nor a search setting.
     """
     del key
     (rho, gate_temperature), bad = _util.replace_nans((rho, 0.9544), (gate_temperature, 0.0))
@@ -241,26 +253,15 @@ def pcm(
             "piecewise-constant EISE, with no useful gradient); set lam=..."
         )
     validate_temperature(gate_temperature, "gate_temperature")
-    search, lam, bad_search = checked_search(
-        gm,
-        lam,
-        EISECriterion.seed000(merge),
-        lambda_range=lambda_range,
-        alpha=alpha,
-        temperature=temperature,
-        tol=tol,
-        range_scale=range_scale,
-        grid_size=grid_size,
-        newton_steps=newton_steps,
-        dims=dims,
-        allow_zero_temperature=mode != "hard",
+    confidence, lam, bad_search = checked_search(
+        gm, lam, ConfidenceSearch.seed000(merge), search, caller="pcm", allow_zero_temperature=mode != "hard"
     )
     if max_components is not None:
         max_components = _validate.validate_count(max_components, "max_components", 1, 2**31 - 1)
     cap = _validate.validate_capacity(capacity, gm)
     core = _pcm_core if mode == "hard" else partial(_soft_pcm_core, mode=mode)
     out = core(
-        gm, rho, lam, search, gate_temperature, max_components=max_components, prune=prune, capacity=cap
+        gm, rho, lam, confidence, gate_temperature, max_components=max_components, prune=prune, capacity=cap
     )
     return _util.unchanged_if_nan(_util.either(bad, bad_search), gm, out)
 
@@ -418,8 +419,10 @@ def _soft_pcm_core(gm, rho, lam, search, gate_temperature, *, max_components, pr
 
 
 @pytree_dataclass
-class PCM(Stateless):
-    """Reducer config for :func:`pcm` (static: sizes, step counts, ``mode``; the rest are traced).
+class PCM(_SearchSettings, Stateless):
+    """Reducer config for :func:`pcm` (static: sizes, step counts, ``mode``; the rest are traced):
+    :func:`pcm`'s arguments, its search settings (``lambda_range``, ``alpha``, ``temperature``,
+    ``tol``, ``range_scale``, ``grid_size``, ``newton_steps``, ``dims``) included.
 
     ``PCM()(gm)`` runs the paper's reduction with the searched ``λ``; set ``lam`` to fix it.
     ``PCM(rho=ρ, lam=λ, mode="soft", gate_temperature=T_ρ, temperature=τ)`` is the relaxed
@@ -428,16 +431,8 @@ class PCM(Stateless):
     """
 
     rho: Any = 0.9544
-    alpha: Any = 0.001
     lam: Any = None
-    lambda_range: Any = (1.0, 3.0)
-    temperature: Any = 0.2
-    tol: Any = 1e-6
-    range_scale: Any = 0.5
     max_components: int | None = static_field(None)
-    grid_size: int = static_field(11)
-    newton_steps: int = static_field(8)
-    dims: tuple[int, ...] | None = static_field(None)
     merge: str = static_field("ci")
     prune: bool = static_field(True)
     capacity: int | None = static_field(None)

@@ -16,6 +16,7 @@ from gmjax.reduction.clustering import gauss_cluster
 from gmjax.reduction.eise import (
     ConfidenceSearch,
     EISECriterion,
+    SearchOptions,
     cluster_ise,
     eise,
     hard_eise,
@@ -978,6 +979,28 @@ def test_pcm_gradients_finite_with_padding():
 def test_pcm_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         pcm(case("unimodal"), **kwargs)
+
+
+def test_pcm_and_gmrcm_search_keywords():
+    """The search settings are ``**search`` keywords (:class:`SearchOptions`): a misspelt one is a
+    ``TypeError`` naming it; each reducer starts from its paper's search, and its config class's
+    defaults are those values (the two places a default is written agree)."""
+    gm = case("unimodal")
+    with pytest.raises(TypeError, match="pcm.. got an unexpected keyword argument 'lambda_rnage'"):
+        pcm(gm, lambda_rnage=(1.0, 2.0))
+    with pytest.raises(TypeError, match="gmrcm.. got an unexpected keyword argument 'rho'"):
+        gmrcm(gm, rho=0.9)
+    for config, preset in ((PCM(), ConfidenceSearch.seed000()), (GMRCM(), ConfidenceSearch.seed003())):
+        for name in SearchOptions.__annotations__:
+            assert getattr(config, name) == getattr(preset, name), (type(config).__name__, name)
+    assert ConfidenceSearch.seed000("moment").criterion.method == "moment"
+    # the defaults are the ones used: an explicit preset value gives the same bits
+    for reducer, preset in ((pcm, ConfidenceSearch.seed000()), (gmrcm, ConfidenceSearch.seed003())):
+        out = reducer(gm)
+        explicit = reducer(
+            gm, lambda_range=preset.lambda_range, alpha=preset.alpha, temperature=preset.temperature
+        )
+        jax.tree_util.tree_map(np.testing.assert_array_equal, out, explicit)
 
 
 # --------------------------------------------------------------------------- the GMRCM reducer

@@ -72,11 +72,18 @@ from gmjax.reduction.eise.ise import (
     self_overlaps,
 )
 from gmjax.reduction.eise.relaxed import relaxed_eise, relaxed_membership
-from gmjax.reduction.eise.search import ConfidenceSearch, EISECriterion, SearchResult, search_confidence
+from gmjax.reduction.eise.search import (
+    ConfidenceSearch,
+    EISECriterion,
+    SearchOptions,
+    SearchResult,
+    search_confidence,
+)
 
 __all__ = [
     "ConfidenceSearch",
     "EISECriterion",
+    "SearchOptions",
     "SearchResult",
     "onehot_membership",
     "merge_membership",

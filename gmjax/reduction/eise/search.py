@@ -4,7 +4,7 @@ Newton on the relaxation from the grid's best, the hard EISE at Newton's ``λ``,
 from __future__ import annotations
 
 from functools import partial
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Sequence, TypedDict
 
 import jax
 import jax.numpy as jnp
@@ -19,7 +19,7 @@ from gmjax.reduction.eise.ise import _check_options, _merge_hard, hard_eise, sel
 from gmjax.reduction.eise.newton import _first_where, _newton
 from gmjax.reduction.eise.relaxed import _relaxed_at, _relaxed_parts, _relaxed_slopes_jit
 
-__all__ = ["SearchResult", "EISECriterion", "ConfidenceSearch", "search_confidence"]
+__all__ = ["SearchResult", "EISECriterion", "ConfidenceSearch", "SearchOptions", "search_confidence"]
 
 
 class SearchResult(NamedTuple):
@@ -224,7 +224,24 @@ class EISECriterion(NamedTuple):
 
 
 @pytree_dataclass
-class ConfidenceSearch:
+class _SearchSettings:
+    """The settings of a confidence search (:class:`SearchOptions`), with seed 000's values: the
+    fields :class:`ConfidenceSearch` and the reducer configs :class:`~gmjax.reduction.pcm.PCM` and
+    :class:`~gmjax.reduction.gmrcm.GMRCM` share, declared once (a config overrides a default by
+    declaring the field again)."""
+
+    lambda_range: Any = (1.0, 3.0)
+    alpha: Any = 0.001
+    temperature: Any = 0.2
+    tol: Any = 1e-6
+    range_scale: Any = 0.5
+    grid_size: int = static_field(11)
+    newton_steps: int = static_field(8)
+    dims: tuple[int, ...] | None = static_field(None)
+
+
+@pytree_dataclass
+class ConfidenceSearch(_SearchSettings):
     """How the confidence multiplier ``λ`` is chosen (seed 000 Table 1 step 7; seed 003 Algorithm 1
     steps 5–7).
 
@@ -243,15 +260,19 @@ class ConfidenceSearch:
         criterion: static :class:`EISECriterion`.
     """
 
-    lambda_range: Any = (1.0, 3.0)
-    alpha: Any = 0.001
-    temperature: Any = 0.2
-    tol: Any = 1e-6
-    range_scale: Any = 0.5
-    grid_size: int = static_field(11)
-    newton_steps: int = static_field(8)
-    dims: tuple[int, ...] | None = static_field(None)
     criterion: EISECriterion = static_field(EISECriterion())
+
+    @classmethod
+    def seed000(cls, merge: str = "ci") -> ConfidenceSearch:
+        """PCM's search (seed 000): scope ``[1, 3]`` (§IV-A), ``α = 0.001`` (§IV), ``τ = 0.2``,
+        :meth:`EISECriterion.seed000` with the merge ``merge``."""
+        return cls((1.0, 3.0), 0.001, 0.2, criterion=EISECriterion.seed000(merge))
+
+    @classmethod
+    def seed003(cls) -> ConfidenceSearch:
+        """GMRCM's search (seed 003): scope ``[0.5, 3]`` (§4.1), ``α = 0.3`` (§4.2), ``τ = 0.25``,
+        :meth:`EISECriterion.seed003`."""
+        return cls((0.5, 3.0), 0.3, 0.25, criterion=EISECriterion.seed003())
 
     def at(self, gm: GaussianMixture, lam: ArrayLike) -> SearchResult:
         """The clustering at a given ``λ`` and its hard EISE, as a :class:`SearchResult` (no search)."""
@@ -270,6 +291,22 @@ class ConfidenceSearch:
     def __call__(self, gm: GaussianMixture, lam: ArrayLike | None = None) -> SearchResult:
         """:func:`search_confidence` when ``lam`` is ``None``, else the clustering at ``lam`` (:meth:`at`)."""
         return search_confidence(gm, self) if lam is None else self.at(gm, lam)
+
+
+class SearchOptions(TypedDict, total=False):
+    """The keyword arguments that set a reducer's :class:`ConfidenceSearch` (its fields but the
+    criterion): ``pcm(gm, **search)`` and ``gmrcm(gm, **search)`` take any of them, each reducer
+    starting from its paper's values (:meth:`ConfidenceSearch.seed000`, :meth:`~ConfidenceSearch.seed003`).
+    """
+
+    lambda_range: Sequence[Any]
+    alpha: Any
+    temperature: Any
+    tol: Any
+    range_scale: Any
+    grid_size: int
+    newton_steps: int
+    dims: Sequence[int] | None
 
 
 def _fixed_result(
