@@ -76,3 +76,11 @@ def live_sorted(gm: GaussianMixture):
     P = np.asarray(gm.covs)[mask]
     order = np.lexsort((m[:, 0], w))
     return w[order], m[order], P[order]
+
+
+def seeded_mixture(seed, n=8, d=2, capacity=10, dtype=jnp.float64, **kw):
+    """A mixture of ``n`` :func:`random_components` drawn with ``seed`` in ``capacity`` slots, and its
+    ``(w, m, P)``."""
+    rng = np.random.default_rng(seed)
+    w, m, P = random_components(rng, n, d, **kw)
+    return GaussianMixture.create(w, m, P, capacity=capacity, dtype=dtype), (w, m, P)

@@ -1,5 +1,6 @@
-"""gmjax.reduction: merging primitives against closed forms, reducer invariants (jit == eager,
-vmap == loop, padding, float32, threshold gradients), bad input, and the brute-force oracle."""
+"""gmjax.reduction, every reducer alike: invariants (jit == eager, vmap == loop, padding, float32,
+threshold gradients), bad input, and the brute-force oracle. One reducer's own tests are in the file
+named for its module (test_merge.py, test_prune.py, test_pcm.py, ...)."""
 
 from __future__ import annotations
 
@@ -9,148 +10,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_reduction_utils import batch, index, live_sorted, random_components, scatter_padding
+from test_reduction_utils import batch, index, live_sorted, random_components, scatter_padding, seeded_mixture
 
 from gmjax import reduction as R
 from gmjax.metrics import ise as _ise_eager
-from gmjax.mixture import GaussianMixture, moments
+from gmjax.mixture import GaussianMixture
 
 ise = jax.jit(_ise_eager)
-
-
-def _mix(seed, n=8, d=2, capacity=10, dtype=jnp.float64, **kw):
-    rng = np.random.default_rng(seed)
-    w, m, P = random_components(rng, n, d, **kw)
-    return GaussianMixture.create(w, m, P, capacity=capacity, dtype=dtype), (w, m, P)
-
-
-# ----------------------------------------------------------------------------- primitives
-
-
-@pytest.mark.parametrize("d", [1, 3])
-def test_merge_moment_preserves_moments(d):
-    gm, (w, m, P) = _mix(0, n=9, d=d, capacity=12)
-    W, mu, C = R.merge_moment(gm)
-    mu_ref, C_ref = moments(gm)
-    assert abs(float(W) - w.sum()) < 1e-14
-    np.testing.assert_allclose(np.asarray(mu), np.asarray(mu_ref), atol=1e-12)
-    np.testing.assert_allclose(np.asarray(C), np.asarray(C_ref), atol=1e-12)
-    # eq 72 (raw second moment) written out in NumPy
-    wn = w / w.sum()
-    mu_np = wn @ m
-    C_np = np.einsum("k,kij->ij", wn, P + np.einsum("ki,kj->kij", m, m)) - np.outer(mu_np, mu_np)
-    np.testing.assert_allclose(np.asarray(C), C_np, atol=1e-12)
-    # unnormalised weights: merged weight is their sum, moments unchanged
-    W2, mu2, C2 = R.merge_moment(gm._replace(weights=3.0 * gm.weights))
-    assert abs(float(W2) - 3 * w.sum()) < 1e-13
-    np.testing.assert_allclose(np.asarray(mu2), np.asarray(mu), atol=1e-12)
-    # padding positions do not matter
-    W3, mu3, C3 = R.merge_moment(scatter_padding(gm, 20, seed=1))
-    np.testing.assert_allclose(np.asarray(C3), np.asarray(C), atol=1e-13)
-
-
-def test_merge_ci_matches_equations():
-    gm, (w, m, P) = _mix(1, n=5, d=2, capacity=7)
-    W, mu, C = R.merge_ci(gm)
-    wn = w / w.sum()
-    info = sum(wn[k] * np.linalg.inv(P[k]) for k in range(5))  # eq 38
-    C_ref = np.linalg.inv(info)
-    mu_ref = C_ref @ sum(wn[k] * np.linalg.solve(P[k], m[k]) for k in range(5))  # eq 39
-    assert abs(float(W) - w.sum()) < 1e-14
-    np.testing.assert_allclose(np.asarray(C), C_ref, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(mu), mu_ref, atol=1e-12)
-
-
-def test_merge_ci_optimized_matches_scipy():
-    """Eq 40 (trace of the eq-38 covariance) minimised on the simplex: our projected steps reach
-    SciPy's SLSQP optimum."""
-    from scipy.optimize import minimize
-
-    gm, (w, m, P) = _mix(2, n=5, d=2, capacity=6)
-    Pi = np.linalg.inv(P)
-
-    def f(lam):
-        return np.trace(np.linalg.inv(np.einsum("k,kij->ij", lam, Pi)))
-
-    res = minimize(
-        f,
-        w / w.sum(),
-        method="SLSQP",
-        bounds=[(0, 1)] * 5,
-        constraints=[{"type": "eq", "fun": lambda x: x.sum() - 1}],
-        options={"ftol": 1e-15, "maxiter": 1000},
-    )
-    _, _, C = R.merge_ci(gm, optimize=True, n_steps=30)
-    assert np.trace(np.asarray(C)) <= f(w / w.sum())
-    np.testing.assert_allclose(np.trace(np.asarray(C)), res.fun, rtol=1e-6)
-
-
-@pytest.mark.parametrize("method", ["moment", "ci"])
-def test_merge_labels_equals_per_cluster_merge(method):
-    gm, _ = _mix(3, n=9, d=2, capacity=11)
-    gm = scatter_padding(gm, 14, seed=3)
-    labels = jnp.asarray([0, 2, 1, 0, -1, 2, 2, 0, 1, 1, 0, 2, 0, 1])
-    out = R.merge_labels(gm, labels, 4, method)
-    merge = R.merge_moment if method == "moment" else R.merge_ci
-    lab = np.where(np.asarray(gm.mask), np.asarray(labels), -1)
-    for c in range(4):
-        sel = jnp.asarray(lab == c)
-        if not sel.any():
-            assert not bool(out.mask[c]) and float(out.weights[c]) == 0.0
-            continue
-        W, mu, C = merge(gm._replace(mask=gm.mask & sel))
-        assert bool(out.mask[c])
-        np.testing.assert_allclose(float(out.weights[c]), float(W), atol=1e-14)
-        np.testing.assert_allclose(np.asarray(out.means[c]), np.asarray(mu), atol=1e-12)
-        np.testing.assert_allclose(np.asarray(out.covs[c]), np.asarray(C), atol=1e-12)
-    dropped = float(jnp.sum(jnp.where(gm.mask & (labels < 0), gm.weights, 0.0)))
-    assert abs(float(jnp.sum(out.weights)) + dropped - float(jnp.sum(gm.weights))) < 1e-14
-
-
-def test_merge_labels_gradients_finite_with_empty_clusters():
-    gm, _ = _mix(4, n=4, d=2, capacity=6)
-    labels = jnp.asarray([0, 0, 2, 2, 1, 3])  # slots 4, 5 padded -> clusters 1, 3 empty
-
-    def f(means):
-        out = R.merge_labels(gm._replace(means=means), labels, 4, "ci", optimize=True)
-        return jnp.sum(out.covs) + jnp.sum(out.means**2)
-
-    g = jax.grad(f)(gm.means)
-    assert np.isfinite(np.asarray(g)).all()
-
-
-def test_prune_censored_order_statistic():
-    """Seed 000 eqs 19–22 on a hand example: sorted weights .05 .1 .15 .3 .4; gamma_n =
-    1, .95, .85, .7, .4; rho = .9 -> n_max = 2, N = 5 - 2 + 1 = 4; eq 41 rescales by 1/.95."""
-    w = np.array([0.3, 0.05, 0.4, 0.15, 0.1])
-    gm = GaussianMixture.create(w, np.arange(5.0), np.ones(5), capacity=7)
-    out, info = R.prune_censored(gm, 0.9)
-    np.testing.assert_allclose(np.asarray(out.weights[:4]), np.array([0.4, 0.3, 0.15, 0.1]) / 0.95)
-    assert int(info.n_out) == 4 and abs(float(info.pruned_mass) - 0.05) < 1e-15
-    np.testing.assert_array_equal(np.asarray(info.labels), [1, -1, 0, 2, 3, -1, -1])
-    out, info = R.prune_censored(gm, 0.9, 2)  # N_u = 2
-    np.testing.assert_allclose(np.asarray(out.weights[:2]), np.array([0.4, 0.3]) / 0.7)
-    out, _ = R.prune_threshold(gm, 0.12)
-    np.testing.assert_allclose(np.asarray(out.weights[:3]), np.array([0.4, 0.3, 0.15]) / 0.85)
-    out, info = R.prune_top(gm, 2, capacity=2)
-    assert out.capacity == 2 and abs(float(info.pruned_mass) - 0.3) < 1e-15
-
-
-def test_vo_ma_reports_the_mass_its_output_capacity_drops():
-    """Vo & Ma keeps the J_max heaviest and restores the total weight; a smaller output ``capacity``
-    then keeps the heaviest of those without renormalising. The weight that capacity drops is
-    reported in ``pruned_mass`` (until the ``finalize_info`` refactor it was left out), so the
-    output and the pruned mass account for every component."""
-    w = np.array([0.4, 0.3, 0.2, 0.1])
-    gm = GaussianMixture.create(w, np.array([0.0, 10.0, 20.0, 30.0]), np.ones(4))  # nothing merges
-    out, info = R.vo_ma(gm, 1e-3, 1.0, capacity=2)
-    assert bool(info.overflow) and int(info.n_out) == 2
-    np.testing.assert_allclose(np.asarray(out.weights), [0.4, 0.3], rtol=1e-15)
-    assert abs(float(info.pruned_mass) - 0.3) < 1e-15
-    # 0.1 pruned by the threshold (the survivors renormalised to the total), then 0.2 / 0.9 by capacity
-    out, info = R.vo_ma(gm, 0.15, 1.0, capacity=2)
-    np.testing.assert_allclose(np.asarray(out.weights), np.array([0.4, 0.3]) / 0.9, rtol=1e-15)
-    assert abs(float(info.pruned_mass) - (0.1 + 0.2 / 0.9)) < 1e-15
 
 
 # ----------------------------------------------------------------------------- reducer invariants
@@ -251,7 +117,7 @@ def test_float32(name):
 @pytest.mark.parametrize("name", _maybe_slow(THRESHOLDED))
 def test_threshold_gradient(name):
     fn = REDUCERS[name]
-    gm, _ = _mix(7, n=6, d=2, capacity=CAP)
+    gm, _ = seeded_mixture(7, n=6, d=2, capacity=CAP)
     t0 = {"vo_ma": 4.0, "prune_threshold": 0.05, "prune_censored": 0.9}.get(name, 0.5)
 
     def loss(t):
@@ -263,7 +129,7 @@ def test_threshold_gradient(name):
 
 
 def test_fewer_live_than_target_unchanged_inside_jit():
-    gm, _ = _mix(8, n=3, d=2, capacity=CAP)
+    gm, _ = seeded_mixture(8, n=3, d=2, capacity=CAP)
     for name in ["runnalls", "west", "salmond", "williams", "cowa", "gmrc", "kmeans", "brute_force"]:
         out, info = REDUCERS[name](gm)  # the implementation is a jitted kernel
         _assert_same(out, gm, atol=1e-15)
@@ -272,7 +138,7 @@ def test_fewer_live_than_target_unchanged_inside_jit():
 
 
 def test_threshold_stops_early():
-    gm, _ = _mix(9, n=8, d=2, capacity=CAP)
+    gm, _ = seeded_mixture(9, n=8, d=2, capacity=CAP)
     _, full = R.runnalls(gm, 1)
     counts = []
     for thr in (0.0, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0):
@@ -291,7 +157,7 @@ def test_threshold_stops_early():
 
 
 def test_bad_input_raises():
-    gm, _ = _mix(10, n=5, d=2, capacity=6)
+    gm, _ = seeded_mixture(10, n=5, d=2, capacity=6)
     with pytest.raises(ValueError, match="num_out"):
         R.runnalls(gm, 0)
     with pytest.raises(ValueError, match="num_out"):
@@ -335,7 +201,7 @@ def test_brute_force_is_ise_optimal(seed, n):
 
 
 def test_ise_refine_improves():
-    gm, _ = _mix(11, n=9, d=2, capacity=CAP)
+    gm, _ = seeded_mixture(11, n=9, d=2, capacity=CAP)
     red, _ = R.runnalls(gm, 3, capacity=3)
     out, info = R.ise_refine(red, gm, n_steps=60, learning_rate=0.02)
     assert float(info.cost) <= float(info.aux["initial_ise"])
@@ -349,7 +215,7 @@ def test_ise_refine_improves():
 
 
 def test_configs_are_reducers():
-    gm, _ = _mix(12, n=6, d=2, capacity=CAP)
+    gm, _ = seeded_mixture(12, n=6, d=2, capacity=CAP)
     cfgs = [
         R.Runnalls(num_out=3),
         R.West(num_out=3),

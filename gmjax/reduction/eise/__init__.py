@@ -33,7 +33,7 @@ builds the per-grid-point sums once (``_RelaxedParts``: ``Σ ω``, ``Σ ω P^{-1
 or the moment sums per cluster, and the ``(G, G)`` matrix of ``J_hh`` cross sums); each relaxed
 evaluation then combines them with ``π(λ)`` and needs ``J_hr`` only for the ``G K`` pairs (component,
 the cluster a grid point puts it in). Equal to the dense soft merge to rounding
-(``tests/reduction/test_pcm.py``). Neighbouring grid points mostly cluster alike, so few of those pairs are
+(``tests/reduction/eise/test_relaxed.py``). Neighbouring grid points mostly cluster alike, so few of those pairs are
 distinct; for ``d >= 2`` the search evaluates each distinct pair once (``_Pairs``, ``_over_pairs``;
 under ``vmap`` the distinct pairs of all runs side by side): in 4-D, where the pairs' ``d × d``
 algebra dominates, a relaxed evaluation costs a little over a quarter of one over all pairs. The

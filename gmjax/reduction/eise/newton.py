@@ -286,7 +286,7 @@ def _newton(
     done, and only the runs whose full step was rejected halve, gathered into blocks
     (:func:`_halvings`). ``while_loop`` has no reverse mode, so a custom JVP differentiates the
     equivalent fixed-length ``scan`` instead: the values are identical (bitwise in
-    ``tests/reduction/test_pcm.py``; compiled inside the whole search, XLA may fuse the two differently, and
+    ``tests/reduction/eise/test_newton.py``; compiled inside the whole search, XLA may fuse the two differently, and
     on 4 × 1000 jump-system searches 0–4 runs' ``λ`` differed by up to 1e-14 relative) and the
     derivatives are those of the ``scan`` (``jax.grad`` works).
     ``fun`` must take everything it differentiates through ``args`` (a pytree), not a closure.

@@ -127,7 +127,7 @@ def _over_pairs(fn, parts: _RelaxedParts, at_cluster) -> tuple[Array, ...]:
     run needs. Under ``vmap`` the distinct pairs of all the batch's runs side by side, in chunks of a
     sixteenth of all runs' pairs (usually one), so that no run evaluates pairs it does not have.
     The same arithmetic on the same inputs, so equal to rounding (XLA may fuse the programs
-    differently: a few ulps in ``tests/reduction/test_pcm.py``'s 2-D cases; on 5 × 1000 captured 4-D
+    differently: a few ulps in ``tests/reduction/eise/test_relaxed.py``'s 2-D cases; on 5 × 1000 captured 4-D
     benchmark searches every result bit-identical). The loops have no reverse mode.
     """
     gm = parts.gm
@@ -328,7 +328,7 @@ def _trace_of_product(a: Array, b: Array) -> Array:
 # runs that need them (_halvings); XLA:CPU hands reductions and dots above some size to other kernels
 # (YNNPACK, Eigen), which sum in another order, so a run's value would depend on the batch it is
 # evaluated in. The evaluation therefore sums elementwise, left to right (unrolled at trace time),
-# except the three π-weighted grid sums, whose dots keep one order from 32 runs up (tests/reduction/test_pcm.py)
+# except the three π-weighted grid sums, whose dots keep one order from 32 runs up (tests/reduction/eise/test_relaxed.py)
 # and are faster than unrolled sums.
 def _sum_last(x: Array) -> Array:
     """``Σ_i x[..., i]``, left to right."""
@@ -391,7 +391,7 @@ def _relaxed_value_and_slopes(
 
     and the same with ``S = 2 P̄_c``, ``r = 0`` for ``J_rr``. The value comes with them at little
     cost (the merged clusters and ``ℓ`` are the value's own). Equal to :func:`_relaxed_at` and its
-    ``jvp`` derivatives to rounding (``tests/reduction/test_pcm.py``); Newton's step uses these.
+    ``jvp`` derivatives to rounding (``tests/reduction/eise/test_relaxed.py``); Newton's step uses these.
     """
     parts, temperature, alpha = args
     gm = parts.gm
