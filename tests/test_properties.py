@@ -214,7 +214,7 @@ _HEAVY = {
     "gmrcm",
     "refined",
     "cowa",
-}  # (COWA: its QP checked in test_reduction_reference)
+}  # (COWA: its QP checked in tests/reduction/test_cowa.py)
 _COMPILED: dict = {}
 
 

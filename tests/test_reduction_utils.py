@@ -84,3 +84,25 @@ def seeded_mixture(seed, n=8, d=2, capacity=10, dtype=jnp.float64, **kw):
     rng = np.random.default_rng(seed)
     w, m, P = random_components(rng, n, d, **kw)
     return GaussianMixture.create(w, m, P, capacity=capacity, dtype=dtype), (w, m, P)
+
+
+def reference_batch(d, seed, n=200, capacity=12):
+    """``n`` random ``(w, m, P)`` of 6 to ``capacity`` components in ``d`` dimensions (seed 000
+    ranges) and their capacity-``capacity`` batch, for comparing a vmapped reducer with a loop of
+    its NumPy reference."""
+    rng = np.random.default_rng(seed)
+    comps = [random_components(rng, int(rng.integers(6, capacity + 1)), d) for _ in range(n)]
+    return comps, batch(comps, capacity)
+
+
+def assert_equals_reference(out, info, r, b, n):
+    """Mixture ``b`` of a batched reducer's ``(out, info)`` equals the reference's result ``r`` (a
+    dict of ``w``, ``m``, ``P``, ``labels``): outputs to 1e-10, labels exactly; ``n`` live inputs."""
+    n_out = int(info.n_out[b])
+    assert n_out == len(r["w"])
+    np.testing.assert_allclose(np.asarray(out.weights[b, :n_out]), r["w"], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.means[b, :n_out]), r["m"], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(out.covs[b, :n_out]), r["P"], rtol=0, atol=1e-10)
+    assert not np.asarray(out.mask[b, n_out:]).any()
+    np.testing.assert_array_equal(np.asarray(info.labels[b, :n]), r["labels"])
+    assert (np.asarray(info.labels[b, n:]) == -1).all()

@@ -5,10 +5,16 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+from test_reduction_utils import (
+    batch,
+    index,
+    random_components,
+)
 
 from gmjax import reduction as R
 from gmjax.metrics import ise as _ise_eager
 from gmjax.mixture import GaussianMixture
+from references import reduction_np as ref
 
 ise = jax.jit(_ise_eager)
 
@@ -28,3 +34,20 @@ def test_prune_censored_order_statistic():
     np.testing.assert_allclose(np.asarray(out.weights[:3]), np.array([0.4, 0.3, 0.15]) / 0.85)
     out, info = R.prune_top(gm, 2, capacity=2)
     assert out.capacity == 2 and abs(float(info.pruned_mass) - 0.3) < 1e-15
+
+
+def test_pruning_matches_numpy():
+    rng = np.random.default_rng(3)
+    for _trial in range(30):
+        w, m, P = random_components(rng, int(rng.integers(3, 10)), 2, wr=(1e-3, 0.3))
+        gm = index(batch([(w, m, P)], 9), 0)
+        for out, (keep, wk) in (
+            (R.prune_threshold(gm, 0.05)[0], ref.prune_threshold(w, 0.05)),
+            (R.prune_top(gm, 3)[0], ref.prune_top(w, 3)),
+            (R.prune_censored(gm, 0.9)[0], ref.prune_censored(w, 0.9)),
+            (R.prune_censored(gm, 0.9544, 4)[0], ref.prune_censored(w, 0.9544, 4)),
+        ):
+            n = len(keep)
+            assert int(np.sum(np.asarray(out.mask))) == n
+            np.testing.assert_allclose(np.asarray(out.weights[:n]), wk, atol=1e-14)
+            np.testing.assert_allclose(np.asarray(out.means[:n]), m[keep], atol=0)

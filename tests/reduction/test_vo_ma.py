@@ -4,10 +4,16 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+from test_reduction_utils import (
+    batch,
+    index,
+    random_components,
+)
 
 from gmjax import reduction as R
 from gmjax.metrics import ise as _ise_eager
 from gmjax.mixture import GaussianMixture
+from references import reduction_np as ref
 
 ise = jax.jit(_ise_eager)
 
@@ -27,3 +33,18 @@ def test_vo_ma_reports_the_mass_its_output_capacity_drops():
     out, info = R.vo_ma(gm, 0.15, 1.0, capacity=2)
     np.testing.assert_allclose(np.asarray(out.weights), np.array([0.4, 0.3]) / 0.9, rtol=1e-15)
     assert abs(float(info.pruned_mass) - (0.1 + 0.2 / 0.9)) < 1e-15
+
+
+def test_vo_ma_matches_numpy():
+    rng = np.random.default_rng(8)
+    for _trial in range(30):
+        w, m, P = random_components(rng, int(rng.integers(4, 10)), 2, wr=(1e-3, 0.2))
+        gm = index(batch([(w, m, P)], 9), 0)
+        out, info = R.vo_ma(gm, 0.02, 2.0, 5)
+        wr, mr, Pr = ref.vo_ma(w, m, P, 0.02, 2.0, 5)
+        n_out = int(info.n_out)
+        assert n_out == len(wr)
+        order = np.argsort(-wr, kind="stable")
+        np.testing.assert_allclose(np.asarray(out.weights[:n_out]), wr[order], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(out.means[:n_out]), mr[order], atol=1e-12)
+        np.testing.assert_allclose(np.asarray(out.covs[:n_out]), Pr[order], atol=1e-12)
