@@ -34,15 +34,7 @@ from gmjax.mixture import GaussianMixture, pdf  # noqa: E402
 from gmjax.reduction import eise, gmrcm, onehot_membership, pcm, prune_top, runnalls  # noqa: E402
 from references import pcm_numpy as ref  # noqa: E402
 
-CASES = {
-    "unimodal": ([0.3, 0.1, 0.4, 0.2], [1, 1.5, 2, 3], [1, 1.2, 0.5, 0.8]),
-    "bimodal": ([0.3, 0.1, 0.4, 0.2], [0.5, 2, 3.5, 4], [1, 1.2, 0.5, 0.8]),
-    "multimodal": (
-        [0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06],
-        [0.5, 2, 3.5, 4, 5, -1, 0, 1],
-        [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3],
-    ),
-}
+CASES = ref.STATIC_CASES  # seed 000 §IV-A
 # seed 000 Tables 2-4: (final number, EISE, CPU time s) at lambda = 1, 2, 3, 4
 PAPER_000 = {
     "unimodal": [(4, 0.0272, 0.014), (3, 0.0221, 0.016), (3, 0.0221, 0.016), (2, 0.0348, 0.017)],

@@ -1,10 +1,10 @@
 """Plain NumPy/Python reference for prune-cluster-merge (seed 000) and cluster-merge (seed 003).
 
 Written straight from the papers with Python sets and loops, one mixture at a time: the baseline a
-user would otherwise write, and the independent check of ``gmjax.reduction.clustering``, ``_eise``,
-``_pcm`` and ``_gmrcm``. The readings of the ambiguous steps are the ones documented in
-``gmjax/reduction/_clustering.py`` (Mahalanobis confidence ellipsoid, lexicographic pair order,
-subset kept whole, ties of eq 28 to the lower-indexed cluster).
+user would otherwise write, and the independent check of ``gmjax.reduction.clustering``,
+``gmjax.reduction.eise``, ``gmjax.reduction.pcm`` and ``gmjax.reduction.gmrcm``. The readings of the
+ambiguous steps are the ones documented in ``gmjax/reduction/clustering.py`` (Mahalanobis confidence
+ellipsoid, lexicographic pair order, subset kept whole, ties of eq 28 to the lower-indexed cluster).
 """
 
 from __future__ import annotations
@@ -12,6 +12,19 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+#: The 1-D static mixtures of seed 000 §IV-A (Figs 4-6): name -> (weights, means, standard
+#: deviations). The tests (``tests/eise_cases.py``, which run seed 003's reducer on them too) and
+#: ``benchmarks/bench_pcm_static.py`` read them from here.
+STATIC_CASES = {
+    "unimodal": ([0.3, 0.1, 0.4, 0.2], [1, 1.5, 2, 3], [1, 1.2, 0.5, 0.8]),
+    "bimodal": ([0.3, 0.1, 0.4, 0.2], [0.5, 2, 3.5, 4], [1, 1.2, 0.5, 0.8]),
+    "multimodal": (
+        [0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06],
+        [0.5, 2, 3.5, 4, 5, -1, 0, 1],
+        [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3],
+    ),
+}
 
 
 def _n_pdf(x, m, P):

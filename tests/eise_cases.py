@@ -9,20 +9,12 @@ import numpy as np
 
 from gmjax.mixture import GaussianMixture
 from gmjax.reduction.clustering import gauss_cluster
+from references.pcm_numpy import STATIC_CASES
 
 K = 12  # one capacity throughout so compiled kernels are shared
 
 
-# seed 000 §IV-A / seed 003 §4.1 static cases
-CASES = {
-    "unimodal": ([0.3, 0.1, 0.4, 0.2], [1, 1.5, 2, 3], [1, 1.2, 0.5, 0.8]),
-    "bimodal": ([0.3, 0.1, 0.4, 0.2], [0.5, 2, 3.5, 4], [1, 1.2, 0.5, 0.8]),
-    "multimodal": (
-        [0.1, 0.05, 0.35, 0.1, 0.1, 0.2, 0.04, 0.06],
-        [0.5, 2, 3.5, 4, 5, -1, 0, 1],
-        [1, 1.2, 0.5, 0.8, 0.2, 0.3, 4, 3],
-    ),
-}
+CASES = STATIC_CASES  # seed 000 §IV-A
 
 
 def case(name, dtype=jnp.float64, capacity=K):
