@@ -15,7 +15,7 @@ from test_reduction_utils import (
     reference_batch,
 )
 
-from gmjax import GaussianMixture, reduction
+from gmjax import GaussianMixture
 from gmjax import reduction as R
 from gmjax.reduction import _greedy
 from references import reduction_np as ref
@@ -81,7 +81,7 @@ def test_jit_grad_of_vmapped_greedy_reducers_equals_the_loop(name):
     """``jit(grad(vmap(...)))`` of Runnalls and Salmond equals the per-mixture gradients (it once
     failed with an ``IndexError`` when they batched as a sequential map with a custom rule; they
     now batch as blocks of a plain ``vmap``, with the same guard for it)."""
-    reducer = {"runnalls": reduction.Runnalls(num_out=3), "salmond": reduction.Salmond(num_out=3)}[name]
+    reducer = {"runnalls": R.Runnalls(num_out=3), "salmond": R.Salmond(num_out=3)}[name]
     gms = [padded_mixture(seed) for seed in (1, 2)]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
 
@@ -109,7 +109,7 @@ def test_greedy_reducers_batched_in_blocks_equal_the_loop_and_differentiate(name
         jnp.asarray(0.2 * np.eye(d) + 0.3 * A @ np.swapaxes(A, -1, -2)),
         jnp.ones((n, K), bool),
     )
-    reducer = {"runnalls": reduction.Runnalls(num_out=3), "salmond": reduction.Salmond(num_out=3)}[name]
+    reducer = {"runnalls": R.Runnalls(num_out=3), "salmond": R.Salmond(num_out=3)}[name]
     out_v, info_v = jax.jit(jax.vmap(reducer))(batch)
     for b in (0, _greedy.BLOCK, n - 1):
         gm = jax.tree_util.tree_map(lambda a, b=b: a[b], batch)

@@ -8,7 +8,7 @@ import numpy as np
 from test_reduction import CAP, ise
 from test_reduction_utils import seeded_mixture
 
-from gmjax import GaussianMixture, reduction
+from gmjax import GaussianMixture
 from gmjax import reduction as R
 
 
@@ -28,10 +28,10 @@ def test_ise_refine_improves():
 
 def test_ise_refine_is_differentiable_in_its_learning_rate():
     gm = GaussianMixture.create([0.3, 0.2, 0.3, 0.2], [-1.0, 0.5, 3.0, 3.2], [1.0, 0.5, 2.0, 1.0], capacity=6)
-    red, _ = reduction.runnalls(gm, 2)
+    red, _ = R.runnalls(gm, 2)
 
     def cost(lr):
-        return reduction.ise_refine(red, gm, n_steps=5, learning_rate=lr)[1].cost
+        return R.ise_refine(red, gm, n_steps=5, learning_rate=lr)[1].cost
 
     c, g = jax.jit(jax.value_and_grad(cost))(1e-2)
     fd = (jax.jit(cost)(1e-2 + 1e-6) - jax.jit(cost)(1e-2 - 1e-6)) / 2e-6
