@@ -265,8 +265,8 @@ class ConfidenceSearch(_SearchSettings):
     @classmethod
     def seed000(cls, merge: str = "ci") -> ConfidenceSearch:
         """PCM's search (seed 000): scope ``[1, 3]`` (§IV-A), ``α = 0.001`` (§IV), ``τ = 0.2``,
-        :meth:`EISECriterion.seed000` with the merge ``merge``."""
-        return cls((1.0, 3.0), 0.001, 0.2, criterion=EISECriterion.seed000(merge))
+        :meth:`EISECriterion.seed000` with the merge ``merge`` (the declared defaults are seed 000's)."""
+        return cls(criterion=EISECriterion.seed000(merge))
 
     @classmethod
     def seed003(cls) -> ConfidenceSearch:
