@@ -76,6 +76,7 @@ import numpy as np
 from gmjax import gaussian
 from gmjax._types import Array, ArrayLike, Mask
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction import _util
 
 __all__ = [
     "ClusterResult",
@@ -275,8 +276,9 @@ def resolve_overlaps(membership: Array, dist: Array, *, subset_rule: str = "spli
     """Turn overlapping row clusters into a partition (seed 000 eqs 26–28 Steps 2–3).
 
     A stack of clusterings of the same components (one per ``λ`` of a grid, say) is resolved in one
-    loop that visits only the sharing pairs of each clustering in turn, so under ``vmap`` it runs
-    the batch's largest *total* number of pair splits.
+    loop that visits only the sharing pairs of each clustering in turn (a clustering equal to the
+    previous one is copied); under ``vmap`` the clusterings of the whole batch are pooled, so the
+    loop runs about the batch's mean number of pair splits, not its largest (:func:`_sweep`).
 
     Args:
         membership: ``(K, K)`` or ``(G, K, K)`` bool, row ``c`` is cluster ``c``.
@@ -315,37 +317,92 @@ def _combine_identical_packed(rows: Array) -> Array:
 
 
 def _resolve_packed(packed: Array, dist: Array, absorb: bool) -> Array:
-    """:func:`resolve_overlaps` on packed rows ``(G, K, W)``."""
-    G, K = packed.shape[0], packed.shape[1]
-    # Each step splits one sharing pair, whose position (i, j) then strictly advances, or moves on
-    # to the next clustering: at most G * (K(K-1)/2 + 1) steps.
-    max_steps = G * (K * (K - 1) // 2 + 1)
+    """:func:`resolve_overlaps` on packed rows ``(G, K, W)``: :func:`_sweep` with the nearness ranks
+    of ``dist``."""
+    return _sweep(packed, _nearness_ranks(dist), absorb)
+
+
+def _sweep(packed: Array, ranks: Array, absorb: bool) -> Array:
+    """The overlap sweep of ``G`` clusterings ``(G, K, W)`` of one mixture (``ranks`` ``(K, K)``).
+
+    A clustering whose rows equal the previous one's (neighbouring grid points often have the same
+    judgment matrix: in ``bench_reducer_limit``'s draw 87 % of them at ``d = 4``, 3 % at ``d = 1``)
+    is not swept again but takes that one's partition. Alone, one lane sweeps the others in turn
+    (:func:`_sweep_lanes`). Under ``vmap`` a lane per mixture would sweep its own clusterings and
+    the batch would run as many steps as the mixture with the most pair splits (in the 1-D draw 492
+    against a mean of 233); so the batch rule pools the clusterings of all mixtures, and each lane
+    takes the next clustering of the pool when it finishes one: about the mean number of steps plus
+    the longest single clustering. Every clustering goes through the same integer steps either way,
+    so the partitions are identical. No derivative flows through bits and ranks.
+    """
+
+    def alone(packed, ranks):
+        return _sweep_lanes(packed[None], ranks[None], 1, absorb)[0]
+
+    pooled = jax.custom_batching.custom_vmap(alone)
+
+    @pooled.def_vmap
+    def _pooled_lanes(axis_size, in_batched, packed, ranks):
+        spread = lambda a, b: a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)  # noqa: E731
+        packed, ranks = spread(packed, in_batched[0]), spread(ranks, in_batched[1])
+        return _sweep_lanes(packed, ranks, axis_size, absorb), True
+
+    return pooled(*jax.lax.stop_gradient((packed, ranks)))
+
+
+def _sweep_lanes(packed: Array, ranks: Array, lanes: int, absorb: bool) -> Array:
+    """Resolve the clusterings ``(B, G, K, W)`` of ``B`` mixtures (``ranks`` ``(B, K, K)``) with
+    ``lanes`` workers: each lane splits the next sharing pair of its clustering
+    (:func:`_next_sharing_pair`, :func:`_split_pair`) and, when none is left, takes the next
+    clustering not yet started; a clustering equal to its mixture's previous one is copied."""
+    B, G, K, W = packed.shape
+    n = B * G
+    if n == 0 or K < 2:
+        return packed
+    L = min(lanes, n)
+    new_run = jnp.concatenate(
+        [jnp.ones((B, 1), bool), jnp.any(packed[:, 1:] != packed[:, :-1], axis=(-2, -1))], 1
+    )
+    run_start = jax.lax.cummax(jnp.where(new_run, jnp.arange(G), 0), axis=1)  # (B, G)
+    todo = _util.first_where(new_run.reshape(n), n)  # the clusterings to sweep, then n
+    n_todo = jnp.sum(new_run, dtype=jnp.int32)
+    flat = packed.reshape(n, K, W)
+    # Each step splits one sharing pair, whose position (i, j) then strictly advances, or moves a
+    # lane on to its next clustering: at most n * (K(K-1)/2 + 1) steps in all.
+    max_steps = min(n * (K * (K - 1) // 2 + 1), 2**31 - 1)
+    split = jax.vmap(partial(_split_pair, absorb=absorb))
+    next_pair = jax.vmap(_next_sharing_pair)
 
     def cond(state):
-        _, g, _, _, step = state
-        return (g < G) & (step < max_steps)
-
-    ranks = _nearness_ranks(dist)
-    grid_point = jnp.arange(G)[:, None, None]
+        _, p, _, _, _, step = state
+        return jnp.any(p < n_todo) & (step < max_steps)
 
     def body(state):
-        packed, g, i, j, step = state
-        rows = packed[g]
-        found, i, j = _next_sharing_pair(rows, i, j)
-        # clustering g rewritten by a select (under vmap a scatter at a batched g costs more)
-        packed = jnp.where((grid_point == g) & found, _split_pair(rows, i, j, ranks, absorb)[None], packed)
+        flat, p, i, j, taken, step = state  # p: each lane's position in ``todo``
+        at = todo[jnp.minimum(p, n - 1)]
+        rows = jnp.take(flat, at, axis=0, mode="clip")
+        found, i, j = next_pair(rows, i, j)
+        active = p < n_todo
+        rows = split(rows, i, j, jnp.take(ranks, at // G, axis=0, mode="clip"))
+        flat = flat.at[jnp.where(active & found, at, n)].set(rows, mode="drop")
+        done = active & ~found
+        p = jnp.where(done, taken + jnp.cumsum(done, dtype=jnp.int32) - 1, p)
         zero = jnp.zeros_like(i)
         return (
-            packed,
-            jnp.where(found, g, g + 1),
+            flat,
+            p,
             jnp.where(found, i, zero),
             jnp.where(found, j + 1, zero + 1),
+            taken + jnp.sum(done, dtype=jnp.int32),
             step + 1,
         )
 
-    zero = jnp.zeros((), jnp.int32)
-    packed, *_ = jax.lax.while_loop(cond, body, (packed, zero, zero, zero + 1, zero))
-    return packed
+    zero = jnp.zeros(L, jnp.int32)
+    lane = jnp.arange(L, dtype=jnp.int32)
+    start = (flat, lane, zero, zero + 1, jnp.asarray(L, jnp.int32), jnp.asarray(0, jnp.int32))
+    flat = jax.lax.while_loop(cond, body, start)[0]
+    source = (jnp.arange(B)[:, None] * G + run_start).reshape(n)
+    return flat[source].reshape(B, G, K, W)
 
 
 def labels_from_membership(membership: Array, mask: Mask) -> Array:

@@ -292,6 +292,45 @@ def test_jit_equals_eager_and_vmap_equals_loop():
         np.testing.assert_array_equal(out[k], gauss_cluster(g, 2.0).labels)
 
 
+@pytest.mark.parametrize("triangular, rule", [(False, "split"), (True, "absorb")])
+def test_pooled_sweep_under_vmap_equals_each_mixture_alone(triangular, rule):
+    """Under ``vmap`` the grid clusterings of all mixtures are swept from one pool by lanes that
+    take the next clustering when done, and a clustering equal to its predecessor is copied
+    (``clustering._sweep``): each mixture's partitions must be those it gets alone and the NumPy
+    loop's. Mixtures of very different overlap (so the lanes finish at different steps), a grid
+    with repeated ``λ`` (equal neighbours), two words per packed row (K = 40), nested ``vmap``, and
+    a batch over ``λ`` only (ranks shared, not batched)."""
+    K, B = 40, 12
+    rng = np.random.default_rng(46)
+    lams = jnp.asarray([0.5, 1.0, 1.0, 1.5, 2.5, 2.5, 2.5, 4.0])
+    gms, refs = [], []
+    for b in range(B):
+        gm, means, covs = random_gm(rng, K, 1)
+        spread = [0.2, 1.0, 5.0][b % 3]  # crowded to sparse: few to many pair splits
+        means = means * spread
+        gms.append(GaussianMixture.create(np.full(K, 1.0 / K), means, covs))
+        refs.append((means, covs))
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *gms)
+    cluster = lambda g: gauss_cluster(g, lams, triangular=triangular, subset_rule=rule).labels  # noqa: E731
+    batched = jax.jit(jax.vmap(cluster))(stacked)
+    nested = jax.vmap(jax.vmap(cluster))(
+        jax.tree_util.tree_map(lambda a: a.reshape((3, 4) + a.shape[1:]), stacked)
+    )
+    np.testing.assert_array_equal(nested.reshape(batched.shape), batched)
+    for b, gm in enumerate(gms):
+        np.testing.assert_array_equal(batched[b], cluster(gm))
+        if b < 3:
+            for g, lam in enumerate(np.asarray(lams)):
+                expect = np.full(K, -1)
+                for head, members in enumerate(ref.cluster(*refs[b], float(lam), triangular, rule)):
+                    expect[list(members)] = head
+                np.testing.assert_array_equal(np.asarray(batched[b, g]), expect)
+    over_lam = jax.vmap(
+        lambda lam: gauss_cluster(gms[0], lam, triangular=triangular, subset_rule=rule).labels
+    )(lams)
+    np.testing.assert_array_equal(over_lam, batched[0])
+
+
 def test_padding_does_not_change_the_clustering():
     rng = np.random.default_rng(11)
     gm, _, _ = random_gm(rng, 9, 1)

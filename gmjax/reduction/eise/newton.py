@@ -8,7 +8,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from gmjax._types import Array
+from gmjax.reduction._util import first_where
 
 _FLAT_EPS = 64  # Newton takes no step whose predicted change |f'| τ is below 64 ε |f|
 
@@ -37,16 +37,6 @@ def _try_scale(slopes, k, acc, lam, raw, f, args, lo, hi, start=None):
     decreases = jnp.isfinite(at_cand[1]) & (at_cand[1] <= f)
     better = (~found) & (decreases if start is None else start | decreases)
     return found | better, tuple(jnp.where(better, a, b) for a, b in zip(at_cand, best))
-
-
-def _first_where(need: Array, size: int) -> Array:
-    """``(size,)`` int32: the indices where ``need`` ``(B,)`` holds, in increasing order, then ``B``
-    (out of range: a ``take`` with ``mode="clip"`` reads a real run, a scatter with ``mode="drop"``
-    writes nothing). A running count and a scatter: ``argsort(~need, stable=True)`` gives the same
-    order but sorts, which on XLA:CPU costs about 0.1 ms for 1000 runs, once per Newton step."""
-    B = need.shape[0]
-    slot = jnp.where(need, jnp.cumsum(need.astype(jnp.int32)) - 1, size)
-    return jnp.full(size, B, jnp.int32).at[slot].set(jnp.arange(B, dtype=jnp.int32), mode="drop")
 
 
 _HALVING_BLOCK = 32  # runs per block when a batch halves only the runs whose full step was rejected
@@ -84,7 +74,7 @@ def _halvings(slopes, n_backtrack: int, k, acc, active, lam, raw, f, args, lo, h
         block = _HALVING_BLOCK
         n_blocks = -(-axis_size // block)
         need = (k <= n_backtrack) & ~acc[0] & active
-        order = _first_where(need, n_blocks * block)  # the runs still halving, then axis_size
+        order = first_where(need, n_blocks * block)  # the runs still halving, then axis_size
 
         def one_block(state):
             j, acc = state
@@ -216,7 +206,7 @@ def _step_until_done(slopes, steps: int, n_backtrack: int, args, lam0, lo, hi, t
 
         def one_pass(carry):
             stepping = keep_on(carry)
-            order = _first_where(stepping, n_chunks * chunk)
+            order = first_where(stepping, n_chunks * chunk)
 
             def one_chunk(state):
                 j, carry = state

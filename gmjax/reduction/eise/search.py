@@ -13,10 +13,11 @@ from gmjax import gaussian
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, ArrayLike
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction import _util
 from gmjax.reduction._greedy import _tied, _zero_of
 from gmjax.reduction.clustering import centre_distances, gauss_cluster, judgment_matrix, similarity_thresholds
 from gmjax.reduction.eise.ise import _check_options, _merge_hard, hard_eise, self_overlaps
-from gmjax.reduction.eise.newton import _first_where, _newton
+from gmjax.reduction.eise.newton import _newton
 from gmjax.reduction.eise.relaxed import _relaxed_at, _relaxed_parts, _relaxed_slopes_jit
 
 __all__ = ["SearchResult", "EISECriterion", "ConfidenceSearch", "SearchOptions", "search_confidence"]
@@ -88,7 +89,7 @@ def _cluster_unless_known(cluster, known: Array, known_labels: Array, *operands)
         block = min(_CLUSTER_BLOCK, axis_size)
         n_blocks = -(-axis_size // block)
         need = ~known
-        order = _first_where(need, n_blocks * block)  # the runs that need a clustering, then axis_size
+        order = _util.first_where(need, n_blocks * block)  # the runs that need a clustering, then axis_size
 
         def one_block(state):
             j, labels = state
@@ -166,7 +167,7 @@ def _grid_costs(evaluate, grid_labels: Array, *operands) -> tuple[Array, Array]:
         run_start = jax.lax.cummax(jnp.where(first, jnp.arange(G), 0), axis=1)  # (B, G)
         flat_labels = grid_labels.reshape(n, K)
         block = min(_EISE_BLOCK, n)
-        order = _first_where(first.reshape(n), -(-n // block) * block)  # run starts first, then n
+        order = _util.first_where(first.reshape(n), -(-n // block) * block)  # run starts first, then n
 
         def one_block(state):
             j, *outs = state

@@ -231,22 +231,6 @@ def test_newton_halves_only_the_runs_that_need_it_under_vmap(n):
     assert eise_newton._HALVING_BLOCK < halving < n  # several blocks halve, some runs never do
 
 
-def test_first_where_is_the_stable_argsort_of_the_runs_that_need_it():
-    """The batch rules' order of the runs to gather (a running count and a scatter): the indices
-    where ``need`` holds in increasing order, then ``B`` to fill ``size``, what a stable argsort of
-    ``~need`` gives before its tail; alone and under jit, none, some and all needing."""
-    rng = np.random.default_rng(4)
-    for B, size, p in [(1000, 1024, 0.01), (1000, 1024, 0.5), (37, 64, 0.0), (37, 64, 1.0), (5, 5, 0.4)]:
-        need = rng.uniform(size=B) < p
-        expected = np.full(size, B)
-        n = int(need.sum())
-        expected[:n] = np.argsort(~need, kind="stable")[:n]
-        for fn in (eise_newton._first_where, jax.jit(eise_newton._first_where, static_argnums=1)):
-            got = np.asarray(fn(jnp.asarray(need), size))
-            assert got.dtype == np.int32
-            np.testing.assert_array_equal(got, expected)
-
-
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_newton_stays_where_the_relaxation_is_flat(dtype):
     """Components too far apart to merge anywhere on the grid: every grid point clusters alike, the
