@@ -463,11 +463,37 @@ def spd_logpdf(x: jax.Array, m: jax.Array, P: jax.Array, *, fixed_order: bool = 
     return -0.5 * (d * _LOG_2PI + spd_logdet(P, fixed_order=fixed_order) + spd_inv_quad(x - m, P))
 
 
+def _sum_entries(entries: list[Array]) -> Array:
+    """Entries ``a, b`` of a ``(..., d, d)`` product listed in row-major order, summed left to right
+    (``d <= 6``): elementwise, vectorised over the leading axes, in one fixed order whatever the
+    batch. Under ``vmap`` a ``reduce`` over the two minor axes of a batch of 4 x 4 matrices is a
+    loop per matrix, and a product formed whole and then sliced is read with strides: West's KL row
+    at ``d = 4`` took 2.6x as long (the same sum to rounding; XLA's ``reduce`` pairs the terms in
+    an order of its own)."""
+    return functools.reduce(jnp.add, entries)
+
+
+def _frobenius(A: Array, B: Array) -> Array:
+    """``Σ_ab A_ab B_ab = tr(A^T B)`` of ``(..., d, d)`` matrices (broadcast)."""
+    d = A.shape[-1]
+    if d > _UNROLL_MAX_DIM:
+        return jnp.sum(A * B, axis=(-1, -2))
+    return _sum_entries([A[..., a, b] * B[..., a, b] for a in range(d) for b in range(d)])
+
+
+def _quadratic_form(x: Array, A: Array) -> Array:
+    """``x^T A x = Σ_ab x_a A_ab x_b`` for ``x`` ``(..., d)``, ``A`` ``(..., d, d)`` (broadcast)."""
+    d = A.shape[-1]
+    if d > _UNROLL_MAX_DIM:
+        return jnp.sum(x[..., :, None] * A * x[..., None, :], axis=(-1, -2))
+    return _sum_entries([x[..., a] * A[..., a, b] * x[..., b] for a in range(d) for b in range(d)])
+
+
 def spd_kl(m1: Array, P1: Array, m2: Array, P2: Array) -> jax.Array:
     """``KL(N(m1, P1) || N(m2, P2))`` broadcast over leading axes."""
     d = P1.shape[-1]
     P2i = spd_inv(P2)
-    tr = jnp.sum(P2i * P1, axis=(-1, -2))
+    tr = _frobenius(P2i, P1)
     return 0.5 * (tr + spd_inv_quad(m2 - m1, P2) - d + spd_logdet(P2) - spd_logdet(P1))
 
 
@@ -478,8 +504,8 @@ def spd_kl_from_inverse(m1: Array, P1: Array, ld1: Array, m2: Array, P2inv: Arra
     ``0.5 [tr(P2^{-1} P1) + (m2 - m1)^T P2^{-1} (m2 - m1) - d + ld2 - ld1]``."""
     d = P1.shape[-1]
     diff = m2 - m1
-    tr = jnp.sum(P2inv * P1, axis=(-1, -2))
-    quad = jnp.sum(diff[..., :, None] * P2inv * diff[..., None, :], axis=(-1, -2))
+    tr = _frobenius(P2inv, P1)
+    quad = _quadratic_form(diff, P2inv)
     return 0.5 * (tr + quad - d + ld2 - ld1)
 
 
