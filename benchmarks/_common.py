@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import platform
+import re
 import statistics
 import time
 from pathlib import Path
@@ -107,7 +108,10 @@ def run_in_fresh_process(script: str, payload: Any, timeout: float, tries: int =
             continue
         if res.returncode != 0:
             lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-            return None, (lines[-1] if lines else f"exit code {res.returncode}")
+            # the exception's own line, not a note printed after it (JAX's "removed its internal
+            # frames" line hid a dtype error of the float32 PCM-GSF rows for a day)
+            errors = [ln for ln in lines if re.match(r"[A-Za-z_][\w.]*(Error|Exception)\b", ln)]
+            return None, (errors or lines or [f"exit code {res.returncode}"])[-1]
         return json.loads(res.stdout.strip().splitlines()[-1]), None
     return None, f"no result within {timeout:.0f} s ({tries} tries)"
 

@@ -69,6 +69,15 @@ def _check_jit_vmap_padding_dtypes(**kw):
     assert int(i32.n_out) == int(eager[0][1].n_out)
     np.testing.assert_allclose(o32.weights, eager[0][0].weights, rtol=1e-4, atol=1e-6)
     assert float(i32.cost) == pytest.approx(float(eager[0][1].cost), rel=1e-4)
+    # float32 under vmap (the batch rules' buffers take the dtype of one evaluation, weak types
+    # kept: a float32 batch failed to trace with x64 on until 2026-12-08)
+    s32 = jax.tree_util.tree_map(
+        lambda *a: jnp.stack(a), *[random_gm(s, n=9, dtype=jnp.float32)[0] for s in range(3)]
+    )
+    ob32, ib32 = jax.jit(jax.vmap(lambda g: pcm(g, **kw)))(s32)
+    assert ob32.means.dtype == jnp.float32 and ib32.cost.dtype == jnp.float32
+    np.testing.assert_array_equal(ib32.labels[0], i32.labels)
+    np.testing.assert_allclose(ob32.means[0], o32.means, rtol=1e-6, atol=1e-6)
 
 
 def test_pcm_jit_eager_vmap_padding_and_dtypes_grid_search():

@@ -156,8 +156,10 @@ def _grid_costs(evaluate, grid_labels: Array, *operands) -> tuple[Array, Array]:
         grid_labels, *operands = jax.tree_util.tree_map(spread, [grid_labels, *operands], list(in_batched))
         B, G, K = grid_labels.shape
         n = B * G
-        one = lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype)  # noqa: E731
-        value_shape = jax.eval_shape(evaluate, one(grid_labels[:, 0]), *jax.tree_util.tree_map(one, operands))
+        # the shapes of one evaluation; ``zeros_like`` keeps an operand's weak type (a Python
+        # ``alpha``), so a float32 mixture gives float32 values, as it does alone
+        one = lambda a, lead=1: jnp.zeros_like(a, shape=a.shape[lead:])  # noqa: E731
+        value_shape = jax.eval_shape(evaluate, one(grid_labels, 2), *jax.tree_util.tree_map(one, operands))
         if n == 0:
             empty = tuple(jnp.zeros((B, G) + v.shape, v.dtype) for v in value_shape)
             return empty, (True, True)
