@@ -47,6 +47,7 @@ __all__ = [
     "concat",
     "top_k",
     "heaviest_slots",
+    "descending_ranks",
     "from_gaussian",
 ]
 
@@ -513,12 +514,43 @@ def concat(a: GaussianMixture, b: GaussianMixture) -> GaussianMixture:
     return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 
+_RANK_BY_COMPARISON_MAX = 128  # capacities up to this rank by K^2 comparisons, above by lax.top_k
+
+
+def _total_order_key(x: Array) -> Array:
+    """Signed integers in the total order of the floats ``x`` (``-NaN < -inf < … < -0 < +0 < … <
+    inf < NaN``), the order of ``lax.top_k``: the sign bit flips every other bit of a negative."""
+    x = jax.lax.stop_gradient(x)
+    itype = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[jnp.dtype(x.dtype).itemsize]
+    bits = jax.lax.bitcast_convert_type(x, itype)
+    return jnp.where(bits < 0, bits ^ jnp.iinfo(itype).max, bits)
+
+
+def descending_ranks(x: Array) -> Array:
+    """``(K,)`` int32: the position of each entry of ``x`` ``(K,)`` in descending order, ties to the
+    lower slot first (the inverse of the permutation ``lax.top_k(x, K)`` gives, NaN and signed
+    zeros included).
+
+    Up to ``K = 128`` counted by ``K^2`` comparisons of :func:`_total_order_key`: under ``vmap``
+    over 1000 mixtures of 60 slots about 1.4 µs per mixture, against 4.7 for ``top_k`` and 5.2 for
+    a stable ``argsort`` (XLA:CPU sorts each row apart).
+    """
+    K = x.shape[-1]
+    if K > _RANK_BY_COMPARISON_MAX:
+        order = jax.lax.top_k(jax.lax.stop_gradient(x), K)[1]
+        return jnp.zeros(K, jnp.int32).at[order].set(jnp.arange(K, dtype=jnp.int32))
+    key = _total_order_key(x)
+    slot = jnp.arange(K)
+    ahead = (key[None, :] > key[:, None]) | ((key[None, :] == key[:, None]) & (slot[None, :] < slot[:, None]))
+    return jnp.sum(ahead, axis=-1, dtype=jnp.int32)
+
+
 def heaviest_slots(weights: Array, keep: Array, k: int) -> tuple[Array, Array]:
     """The slots of the ``k`` heaviest kept components, heaviest first (ties: the lower slot first).
 
-    The one keep-the-heaviest primitive of the library (a ``lax.top_k`` over the weights with the
-    slots not kept at ``-inf``): the reducers' output fitting, top-``K`` pruning, the gated pruning
-    and the GM-PHD's truncation all select through it.
+    The one keep-the-heaviest primitive of the library (``lax.top_k``'s selection over the weights
+    with the slots not kept at ``-inf``, through :func:`descending_ranks`): the reducers' output
+    fitting, top-``K`` pruning, the gated pruning and the GM-PHD's truncation all select through it.
 
     Args:
         weights: ``(K,)`` weights. keep: ``(K,)`` bool, the slots that may be selected.
@@ -529,7 +561,8 @@ def heaviest_slots(weights: Array, keep: Array, k: int) -> tuple[Array, Array]:
         (fewer than ``k`` kept: the rest of ``idx`` are slots that were not kept, marked invalid).
     """
     K = weights.shape[-1]
-    _, idx = jax.lax.top_k(jnp.where(keep, weights, -jnp.inf), min(k, K))
+    rank = descending_ranks(jnp.where(keep, weights, -jnp.inf))
+    idx = jnp.zeros(K, jnp.int32).at[rank].set(jnp.arange(K, dtype=jnp.int32))[: min(k, K)]
     valid = keep[idx]
     if k > K:
         idx = jnp.concatenate([idx, jnp.zeros(k - K, idx.dtype)])

@@ -238,6 +238,35 @@ def test_top_k_keeps_heaviest_and_renormalizes():
     mx.check(big)
 
 
+def test_heaviest_slots_select_as_lax_top_k():
+    """``heaviest_slots`` ranks by comparisons of the floats' total-order keys up to K = 128 and by
+    ``lax.top_k`` above: the same slots in the same order as ``lax.top_k`` over the kept weights,
+    with ties (lower slot first), NaN, infinities and signed zeros, float32 and float64, alone and
+    under ``vmap``; ``descending_ranks`` is the inverse of ``top_k``'s permutation."""
+    rng = np.random.default_rng(46)
+    specials = np.array([np.nan, -np.nan, np.inf, -np.inf, 0.0, -0.0, 1.0, 2.0])
+    for trial in range(60):
+        K = int([1, 2, 5, 20, 60, 128, 129, 200][trial % 8])
+        for dtype in (np.float64, np.float32):
+            w = rng.choice([0.1, 0.2, 0.5], K) if trial % 3 == 0 else rng.uniform(size=K)  # ties
+            if trial % 2 == 0:
+                w[rng.integers(0, K, max(1, K // 4))] = rng.choice(specials, max(1, K // 4))
+            w = jnp.asarray(w.astype(dtype))
+            keep = jnp.asarray(rng.uniform(size=K) < 0.7)
+            k = int(rng.integers(1, K + 3))
+            idx, valid = mx.heaviest_slots(w, keep, k)
+            expected = jax.lax.top_k(jnp.where(keep, w, -jnp.inf), min(k, K))[1]
+            np.testing.assert_array_equal(idx[: min(k, K)], expected)
+            np.testing.assert_array_equal(valid[: min(k, K)], keep[expected])
+            assert idx.shape == valid.shape == (k,) and not np.any(valid[K:])
+            order = jax.lax.top_k(w, K)[1]
+            np.testing.assert_array_equal(np.asarray(mx.descending_ranks(w))[np.asarray(order)], np.arange(K))
+    ws = jnp.asarray(rng.choice([0.1, 0.2, 0.5, np.nan], (7, 60)))
+    batched = jax.vmap(lambda w: mx.heaviest_slots(w, w > 0.15, 20)[0])(ws)
+    for b in range(7):
+        np.testing.assert_array_equal(batched[b], mx.heaviest_slots(ws[b], ws[b] > 0.15, 20)[0])
+
+
 def test_marginal_and_affine_match_closed_form():
     gm, (w, m, P) = random_gm(11, K=3, d=3, capacity=4)
     marg = mx.marginal(gm, [0, 2])

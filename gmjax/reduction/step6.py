@@ -18,6 +18,7 @@ from gmjax._loops import bounded_loop
 from gmjax._pytree import pytree_dataclass, static_field
 from gmjax._types import Array, PRNGKey
 from gmjax.mixture import GaussianMixture
+from gmjax.reduction import _util
 from gmjax.reduction.base import ReductionInfo, make_info
 from gmjax.reduction.runnalls import runnalls_cost
 
@@ -127,7 +128,7 @@ def _fit(c: _MergeCarry, capacity: int):
     n_out = min(capacity, K)
     n_live = jnp.sum(c.mask.astype(jnp.int32))
     overflow = n_live > capacity
-    order_keep = jnp.argsort(~c.mask, stable=True)[:n_out]
+    order_keep = _util.live_first(c.mask)[0][:n_out]
     order_top, _ = gmm.heaviest_slots(c.w, c.mask, n_out)
     idx = jnp.where(overflow, order_top, order_keep)
     live = c.mask[idx]
