@@ -222,8 +222,9 @@ def _load_note(load0, cpu_count):
     # 5-minute one when other work has just paused
     loaded = max(float(load0[0]), float(load0[1])) > 0.75 * cpu_count
     return (
-        "The machine was loaded (another session's work on the same cores), so compare the ratios "
-        "(measured in alternating rounds in one process) rather than absolute times."
+        "The machine was loaded before the run (other work on the same cores, or its load average "
+        "still decaying after it), so compare the ratios (measured in alternating rounds in one "
+        "process) rather than absolute times."
         if loaded
         else "The machine was otherwise quiet."
     )
