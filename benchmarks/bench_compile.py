@@ -9,6 +9,7 @@ are cleared: each repeat traces, lowers and compiles anew). Compile time is what
 (≤ 3 s per Table 7 filter, or the reason).
 
 Usage: python benchmarks/bench_compile.py [--repeats 2] [--filters NL-GSF PF] [--note "..."] [--quick]
+       [--merge-with results/compile.json] (keep the rows of the programs not run now)
        (--quick: one repeat, NL-GSF and the EKF, results compile_quick.*)
 """
 
@@ -63,6 +64,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--filters", nargs="+", default=None, help="Table 7 filters (and EKF); default all")
     parser.add_argument("--note", default="", help="a note recorded with the results (e.g. machine load)")
     parser.add_argument("--quick", action="store_true", help="smoke run: NL-GSF and EKF, one repeat")
+    parser.add_argument(
+        "--merge-with",
+        default=None,
+        help="a previous results JSON: its rows of the programs not run now are kept (to rerun some filters)",
+    )
     args = parser.parse_args(argv)
 
     import jax
@@ -106,6 +112,19 @@ def main(argv: list[str] | None = None) -> dict:
             results[name]["alone"].append(_timed_compile(alone, (sims.zs, sims.inputs, sims.filter_key)))
         print(name, {k: [round(r["total_s"], 2) for r in v] for k, v in results[name].items()}, flush=True)
 
+    kept_note = ""
+    if args.merge_with:
+        import json
+
+        with open(args.merge_with) as f:
+            previous = json.load(f)
+        kept = {k: v for k, v in previous["results"].items() if k not in results}
+        results = {**{k: results[k] for k in ("simulation",)}, **kept, **{k: results[k] for k in names}}
+        kept_note = (
+            f" Rows of {', '.join(kept)} kept from an earlier run (load before "
+            f"{' '.join(previous['loadavg_before'])}; {previous.get('note', '')})."
+        )
+
     def span(rows: list[dict], field: str) -> str:
         lo, hi = min(r[field] for r in rows), max(r[field] for r in rows)
         return f"{lo:.2f}" if f"{lo:.2f}" == f"{hi:.2f}" else f"{lo:.2f}–{hi:.2f}"
@@ -132,7 +151,7 @@ def main(argv: list[str] | None = None) -> dict:
             f"{repeats} repeat(s) in one process; trace + lower + XLA, kernels = XLA:CPU kernels compiled. "
             "'simulation' is compiled once per scenario and shared by every filter's study; "
             "'filter alone' is jit(vmap(run)) over the chunk's measurements.",
-            f"Load average before: {' '.join(load_before)}. {args.note}",
+            f"Load average before: {' '.join(load_before)}. {args.note}{kept_note}",
             "",
             markdown_table(header, table),
         ]
@@ -143,7 +162,7 @@ def main(argv: list[str] | None = None) -> dict:
             "chunk": CHUNK,
             "repeats": repeats,
             "loadavg_before": load_before,
-            "note": args.note,
+            "note": args.note + kept_note,
             "results": results,
         },
         md,
